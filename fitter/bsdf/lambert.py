@@ -1,0 +1,23 @@
+"""Lambertian diffuse lobe, f = rho_d / pi.
+
+Reference: Teschner, *Materials 1*, "BRDF for diffuse reflecting material".
+"""
+
+import jax.numpy as jnp
+
+from .base import Lobe, Param
+
+
+def _eval(p, opts, n, wi, wo):
+    return jnp.broadcast_to(p["rho_d"] / jnp.pi, n.shape)
+
+
+LOBE = Lobe(
+    name="lambert",
+    kind="brdf",
+    params=(
+        Param("rho_d", 3, 0.5, 0.0, 1.0, "logit", "diffuse (bihemispherical) reflectance, RGB"),
+    ),
+    eval=_eval,
+    doc="Lambert: f = rho_d / pi.",
+)

@@ -1,0 +1,53 @@
+"""Oren-Nayar rough diffuse lobe, the lecture's qualitative A/B model.
+
+f = rho_d / pi * (A + B max(0, cos(phi_i - phi_o)) sin(alpha) tan(beta)),
+A = 1 - sigma^2 / (2 (sigma^2 + 0.33)), B = 0.45 sigma^2 / (sigma^2 + 0.09),
+alpha = max(theta_i, theta_o), beta = min(theta_i, theta_o).
+
+``sigma`` is the standard deviation, in radians, of the angle between the
+facet normals and the surface normal (sigma^2 its variance). sigma = 0 gives
+A = 1, B = 0: exactly Lambert.
+
+No angles are formed (arccos has an infinite derivative at 1): with
+sin(theta_i) sin(theta_o) cos(phi_i - phi_o) = wi.wo - cos_i cos_o and
+sin(alpha) sin(beta) = sin(theta_i) sin(theta_o), cos(beta) = max(cos_i, cos_o),
+
+    max(0, cos dphi) sin(alpha) tan(beta) = max(0, wi.wo - cos_i cos_o) / max(cos_i, cos_o).
+
+References:
+    Teschner, *Materials 3*, "Oren-Nayar diffuse material".
+    Oren, Nayar (1994), "Generalization of Lambert's reflectance model",
+        SIGGRAPH, eq. 30 (qualitative model).
+"""
+
+import jax.numpy as jnp
+
+from .._math import dot, safe_div
+from .base import Lobe, Param
+
+
+def coefficients(sigma):
+    """(A, B) of the qualitative Oren-Nayar model for facet slope std-dev sigma."""
+    s2 = sigma * sigma
+    return 1.0 - s2 / (2.0 * (s2 + 0.33)), 0.45 * s2 / (s2 + 0.09)
+
+
+def _eval(p, opts, n, wi, wo):
+    ci, co = dot(n, wi), dot(n, wo)
+    a, b = coefficients(p["sigma"])
+    cmax = jnp.maximum(ci, co)
+    term = safe_div(jnp.maximum(dot(wi, wo) - ci * co, 0.0), cmax, cmax > 0)
+    return p["rho_d"] / jnp.pi * (a + b * term)[..., None]
+
+
+LOBE = Lobe(
+    name="oren_nayar",
+    kind="brdf",
+    params=(
+        Param("rho_d", 3, 0.5, 0.0, 1.0, "logit", "diffuse reflectance, RGB"),
+        Param("sigma", 1, 0.3, 0.0, 1.5, "box",
+              "std-dev of facet slope angle, radians (lecture: sigma^2 <= 1)"),
+    ),
+    eval=_eval,
+    doc="Oren-Nayar (qualitative A/B form); sigma = 0 is Lambert.",
+)

@@ -1,0 +1,41 @@
+"""Phong-style glossy lobe, f = rho_s cos^e(alpha), alpha = angle(r(n, wi), wo).
+
+r(n, wi) = 2 (n.wi) n - wi, so cos(alpha) = r.wo = 2 cos_i cos_o - wi.wo.
+With ``normalized = true`` the lobe is scaled by (e + 2) / (2 pi), which makes
+its directional-hemispherical reflectance at normal incidence exactly rho_s
+(the lecture's integral of cos^n: 2 pi / (n + 2) with n = e + 1). The
+lecture's un-normalised form can reflect more energy than it receives (for
+e = 1, 2 pi / 3 rho_s at normal incidence); it is kept as the default because
+it is the lecture's model, and flagged by ``tests/test_bsdf_properties.py``.
+
+pow is evaluated as exp(e log c) so e up to 1e4 is exact in float64.
+
+Reference: Teschner, *Materials 2*, "Example - glossy / specular reflection".
+"""
+
+import jax.numpy as jnp
+
+from .._math import dot, safe_pow
+from .base import Lobe, Option, Param
+
+
+def _eval(p, opts, n, wi, wo):
+    cos_alpha = 2.0 * dot(n, wi) * dot(n, wo) - dot(wi, wo)
+    e = p["e"]
+    lobe = safe_pow(cos_alpha, e)
+    if opts["normalized"]:
+        lobe = lobe * (e + 2.0) / (2.0 * jnp.pi)
+    return p["rho_s"] * lobe[..., None]
+
+
+LOBE = Lobe(
+    name="phong",
+    kind="brdf",
+    params=(
+        Param("rho_s", 3, 0.5, 0.0, 1.0, "logit", "specular reflectance, RGB"),
+        Param("e", 1, 20.0, 1.0, 1e4, "log", "specular exponent"),
+    ),
+    options=(Option("normalized", (False, True), False, "scale by (e + 2) / (2 pi)"),),
+    eval=_eval,
+    doc="Phong lobe rho_s cos^e(alpha), optionally energy-normalised.",
+)

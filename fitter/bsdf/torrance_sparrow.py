@@ -1,0 +1,60 @@
+"""Torrance-Sparrow microfacet specular lobe with the lecture's Beckmann D.
+
+f = rho_s D(h) G(wi, wo) F(wo.h; eta) / (pi cos_i cos_o), with the lecture's
+D = exp(-tan^2(beta)/m^2) / (4 m^2 cos^4(beta)). Since that D is pi/4 times
+the normalised Beckmann D_n, f = rho_s D_n G F / (4 cos_i cos_o): the same
+BRDF as Mitsuba 3's ``roughconductor`` (``beckmann``, alpha = m, k = 0) when
+G is ``smith``. F is the dielectric Fresnel reflectance at the microfacet,
+cos = wo.h (= wi.h; the lecture writes F(wo)).
+
+Options:
+    geometry: ``"v_groove"`` (Cook-Torrance, default, the lecture's model) or
+        ``"smith"`` (Beckmann Smith G1(wi) G1(wo), Walter et al. rational
+        form, as Mitsuba).
+
+References:
+    Teschner, *Materials 3*, "Torrance-Sparrow specular material".
+    Torrance, Sparrow (1967), JOSA 57(9); Cook, Torrance (1982), ACM TOG 1(1).
+"""
+
+import jax.numpy as jnp
+
+from .._math import dot, safe_div
+from .base import Lobe, Option, Param
+from .fresnel import fresnel_dielectric
+from .microfacet import beckmann_d_lecture, g_smith, g_v_groove
+
+
+def _eval(p, opts, n, wi, wo):
+    ci, co = dot(n, wi), dot(n, wo)
+    h_un = wi + wo
+    h_len2 = dot(h_un, h_un)
+    ok = (h_len2 > 0) & (ci > 0) & (co > 0)
+    inv_len = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, h_len2, 1.0)), 0.0)
+    cos_h = dot(n, h_un) * inv_len
+    wo_h = dot(wo, h_un) * inv_len
+    m = p["m"]
+    d = beckmann_d_lecture(n, h_un, m)
+    if opts["geometry"] == "smith":
+        g = g_smith(ci, co, m)
+    else:
+        g = g_v_groove(cos_h, ci, co, wo_h)
+    f = fresnel_dielectric(jnp.clip(wo_h, 0.0, 1.0), p["eta"])
+    value = safe_div(d * g * f, jnp.pi * ci * co, ok)
+    return p["rho_s"] * value[..., None]
+
+
+LOBE = Lobe(
+    name="torrance_sparrow",
+    kind="brdf",
+    params=(
+        Param("m", 1, 0.2, 1e-3, 1.0, "log", "Beckmann roughness (RMS facet slope)"),
+        Param("eta", 1, 1.5, 1.0, 4.0, "eta", "relative index of refraction of the Fresnel term"),
+        Param("rho_s", 1, 1.0, 0.0, 1.0, "logit", "scale of the lobe (fixed at 1 by default)",
+              free=False),
+    ),
+    options=(Option("geometry", ("v_groove", "smith"), "v_groove",
+                    "shadowing-masking term G"),),
+    eval=_eval,
+    doc="Torrance-Sparrow: D G F / (pi cos_i cos_o), Beckmann D.",
+)

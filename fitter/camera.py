@@ -1,0 +1,81 @@
+"""Camera rays through stratified sub-pixel samples (NumPy, float64).
+
+The frame is Mitsuba's ``look_at``: forward = target - origin, image right =
+forward x up, image up = right x forward (so, looking down -z with up = +y,
+world +x is on the right). Pixel (row i, column j) covers film coordinates
+[j, j+1] x [i, i+1]; row 0 is the top. With k x k supersampling the samples
+sit at the centres of a k x k grid of sub-squares, so their mean is the
+midpoint-rule estimate of the box-filtered pixel.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .scene import Scene
+
+
+class SceneError(ValueError):
+    """A scene that cannot be rendered (message names the field)."""
+
+
+def _unit(v, what):
+    v = np.asarray(v, dtype=np.float64)
+    n = np.linalg.norm(v)
+    if not np.isfinite(n) or n == 0:
+        raise SceneError(f"{what} must be a finite non-zero vector, got {tuple(v)}")
+    return v / n
+
+
+def camera_frame(scene: Scene):
+    """(forward, right, up) unit vectors of the camera, each (3,)."""
+    cam = scene.camera
+    fwd = _unit(np.subtract(cam.target, cam.origin), "camera.target - camera.origin")
+    up = _unit(cam.up, "camera.up")
+    right = np.cross(fwd, up)
+    if np.linalg.norm(right) < 1e-9:
+        raise SceneError("camera.up is parallel to the viewing direction")
+    right /= np.linalg.norm(right)
+    return fwd, right, np.cross(right, fwd)
+
+
+def film_samples(scene: Scene):
+    """Film coordinates of every sub-pixel sample, normalised to [-1, 1] in x.
+
+    Returns:
+        (x, y), each (H, W, k*k): x in [-1, 1] left to right, y in
+        [-H/W, H/W] bottom to top.
+    """
+    k, w, h = scene.supersampling, scene.width, scene.height
+    sub = (np.arange(k) + 0.5) / k
+    cols = (np.arange(w)[:, None] + sub[None, :])  # (W, k)
+    rows = (np.arange(h)[:, None] + sub[None, :])  # (H, k)
+    sx = np.broadcast_to(cols[None, :, None, :], (h, w, k, k))
+    sy = np.broadcast_to(rows[:, None, :, None], (h, w, k, k))
+    x = 2.0 * sx / w - 1.0
+    y = (1.0 - 2.0 * sy / h) * (h / w)
+    return x.reshape(h, w, k * k), y.reshape(h, w, k * k)
+
+
+def camera_rays(scene: Scene):
+    """Ray origins and unit directions, each (H, W, k*k, 3), float64."""
+    cam = scene.camera
+    fwd, right, up = camera_frame(scene)
+    x, y = film_samples(scene)
+    origin = np.asarray(cam.origin, dtype=np.float64)
+    if cam.type == "perspective":
+        if not 0.0 < cam.fov < 180.0:
+            raise SceneError(f"camera.fov = {cam.fov} must lie in (0, 180) degrees")
+        t = np.tan(np.radians(cam.fov) / 2.0)
+        d = fwd + (t * x)[..., None] * right + (t * y)[..., None] * up
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        o = np.broadcast_to(origin, d.shape)
+    elif cam.type == "orthographic":
+        if not cam.half_width > 0:
+            raise SceneError(f"camera.half_width = {cam.half_width} must be > 0")
+        hw = cam.half_width
+        o = origin + (hw * x)[..., None] * right + (hw * y)[..., None] * up
+        d = np.broadcast_to(fwd, o.shape)
+    else:
+        raise SceneError(f"camera.type = {cam.type!r}; allowed: 'perspective', 'orthographic'")
+    return np.ascontiguousarray(o), np.ascontiguousarray(d)

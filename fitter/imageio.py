@@ -1,0 +1,122 @@
+"""Image files through OpenImageIO: EXR/HDR read as linear, 8-bit as sRGB.
+
+All reads return float64 (H, W, 3) linear RGB; 8-bit (and 16-bit integer)
+files are decoded from sRGB with colour-science. Problems raise
+``ImageError`` with one sentence naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+
+
+class ImageError(ValueError):
+    """An image that cannot be used (message names the file and the problem)."""
+
+
+LINEAR_FORMATS = (".exr", ".hdr", ".pfm")
+
+
+def read_image_raw(path: str):
+    """(pixels float64 (H, W, C), is_integer_format) as stored, no conversion."""
+    import OpenImageIO as oiio
+
+    if not os.path.exists(path):
+        raise ImageError(f"{path}: file not found")
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ImageError(f"{path}: cannot read image ({oiio.geterror().strip() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        is_int = spec.format.basetype in (oiio.UINT8, oiio.UINT16, oiio.INT8, oiio.INT16)
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+    finally:
+        inp.close()
+    if pixels is None:
+        raise ImageError(f"{path}: cannot decode image data")
+    pixels = np.asarray(pixels, dtype=np.float64)
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+    return pixels, is_int
+
+
+def to_rgb(pixels: np.ndarray, path: str) -> np.ndarray:
+    """Keep RGB of RGB/RGBA, expand grey; any other channel count is an error."""
+    c = pixels.shape[-1]
+    if c == 1:
+        return np.repeat(pixels, 3, axis=-1)
+    if c in (3, 4):
+        return pixels[..., :3]
+    raise ImageError(f"{path}: has {c} channels, expected 1, 3 or 4 (RGB[A])")
+
+
+def srgb_to_linear(values: np.ndarray) -> np.ndarray:
+    import colour
+
+    return np.asarray(colour.cctf_decoding(values, function="sRGB"), dtype=np.float64)
+
+
+def linear_to_srgb(values: np.ndarray) -> np.ndarray:
+    import colour
+
+    return np.asarray(colour.cctf_encoding(np.clip(values, 0.0, 1.0), function="sRGB"))
+
+
+def read_image(path: str, with_saturation: bool = False):
+    """Read ``path`` as linear RGB float64 (H, W, 3).
+
+    With ``with_saturation=True`` also return a (H, W) bool mask of pixels
+    clipped in an integer-format file (any channel at the format's maximum);
+    it is all False for HDR files.
+    """
+    pixels, is_int = read_image_raw(path)
+    rgb = to_rgb(pixels, path)
+    saturated = np.zeros(rgb.shape[:2], dtype=bool)
+    if is_int:
+        saturated = np.any(rgb >= 1.0, axis=-1)
+        rgb = srgb_to_linear(rgb)
+    return (rgb, saturated) if with_saturation else rgb
+
+
+def _atomic_write(path: str, write):
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    suffix = os.path.splitext(path)[1]
+    fd, tmp = tempfile.mkstemp(suffix=suffix, dir=folder, prefix=".tmp-")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_image(path: str, image: np.ndarray) -> None:
+    """Write linear RGB (H, W, 3): float32 EXR/HDR as is, 8-bit formats sRGB-encoded."""
+    import OpenImageIO as oiio
+
+    image = np.asarray(image, dtype=np.float64)
+    ext = os.path.splitext(path)[1].lower()
+    if ext in LINEAR_FORMATS:
+        data, fmt = image.astype(np.float32), oiio.FLOAT
+    else:
+        data = np.round(linear_to_srgb(image) * 255.0).astype(np.uint8)
+        fmt = oiio.UINT8
+
+    def write(tmp):
+        out = oiio.ImageOutput.create(tmp)
+        if out is None:
+            raise ImageError(f"{path}: no writer for this format ({oiio.geterror().strip()})")
+        spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], fmt)
+        if not out.open(tmp, spec) or not out.write_image(data):
+            msg = out.geterror()
+            out.close()
+            raise ImageError(f"{path}: cannot write image ({msg})")
+        out.close()
+
+    _atomic_write(path, write)

@@ -1,0 +1,148 @@
+"""A material: which lobes are summed, their options, and parameter handling.
+
+Parameters are addressed as ``"lobe.param"`` (``"lambert.rho_d"``,
+``"torrance_sparrow.m"``). A parameter of a named lobe that is not given takes
+the lobe's documented default. RGB parameters accept a scalar (grey) or three
+values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Mapping
+
+import numpy as np
+
+from .bsdf import LOBES
+from .bsdf.base import Lobe, Param
+
+
+class MaterialError(ValueError):
+    """A material or parameter specification a user must fix (message names the key)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Material:
+    """Names of the summed lobes and their (static) options.
+
+    Attributes:
+        lobes: lobe names, e.g. ``("lambert", "torrance_sparrow")``.
+        options: sorted ``(("lobe.option", value), ...)`` pairs; missing ones
+            take the lobe's default. Build with ``Material.make``.
+    """
+
+    lobes: tuple[str, ...]
+    options: tuple[tuple[str, Any], ...] = ()
+
+    @classmethod
+    def make(cls, lobes, options: Mapping[str, Any] | None = None) -> "Material":
+        if isinstance(lobes, str):
+            lobes = tuple(s.strip() for s in lobes.split("+"))
+        lobes = tuple(lobes)
+        if not lobes:
+            raise MaterialError("material.lobes is empty; name at least one of: "
+                                + ", ".join(LOBES))
+        for name in lobes:
+            if name not in LOBES:
+                raise MaterialError(f"unknown lobe {name!r}; known lobes: {', '.join(LOBES)}")
+        if len(set(lobes)) != len(lobes):
+            raise MaterialError(f"material.lobes names a lobe twice: {list(lobes)}")
+        full = {}
+        for name in lobes:
+            for opt in LOBES[name].options:
+                full[f"{name}.{opt.name}"] = opt.default
+        for key, value in (options or {}).items():
+            lobe, opt = _split_key(key, lobes)
+            try:
+                spec = LOBES[lobe].option(opt)
+            except KeyError:
+                raise MaterialError(f"{key!r} is not an option of lobe {lobe!r}") from None
+            if spec.choices is None:
+                if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                    raise MaterialError(f"{key} = {value!r}: expected an integer >= 0")
+            elif value not in spec.choices or type(value) is not type(spec.default):
+                raise MaterialError(f"{key} = {value!r}: allowed values are "
+                                    + ", ".join(repr(c) for c in spec.choices))
+            full[key] = value
+        return cls(lobes, tuple(sorted(full.items())))
+
+    @property
+    def lobe_objects(self) -> tuple[Lobe, ...]:
+        return tuple(LOBES[n] for n in self.lobes)
+
+    def options_of(self, lobe: str) -> dict[str, Any]:
+        prefix = lobe + "."
+        return {k[len(prefix):]: v for k, v in self.options if k.startswith(prefix)}
+
+    def param_specs(self) -> dict[str, Param]:
+        """``{"lobe.param": Param}`` for every parameter of every lobe, in order."""
+        return {f"{n}.{p.name}": p for n in self.lobes for p in LOBES[n].params}
+
+    def option_keys(self) -> set[str]:
+        return {k for k, _ in self.options}
+
+    def full_params(self, params: Mapping[str, Any] | None = None) -> dict[str, np.ndarray]:
+        """Complete, validated float64 parameters: given values, defaults elsewhere.
+
+        Raises MaterialError naming the key for an unknown key, a wrong size,
+        a non-finite value or a value outside the lobe's documented box.
+        """
+        specs = self.param_specs()
+        out = {k: _shaped(s.default, s) for k, s in specs.items()}
+        for key, value in (params or {}).items():
+            if key in self.option_keys():
+                continue
+            if key not in specs:
+                raise MaterialError(
+                    f"unknown parameter {key!r} for lobes {list(self.lobes)}; known: "
+                    + ", ".join(specs))
+            spec = specs[key]
+            arr = np.asarray(value, dtype=np.float64)
+            if arr.shape not in ((), (1,), spec.shape):
+                raise MaterialError(f"{key}: expected {spec.size} value(s), got {arr.size}")
+            arr = _shaped(arr, spec)
+            if not np.all(np.isfinite(arr)):
+                raise MaterialError(f"{key} = {value!r} is not finite")
+            if np.any(arr < spec.lower) or np.any(arr > spec.upper):
+                raise MaterialError(f"{key} = {value!r} is outside its valid range "
+                                    f"[{spec.lower:g}, {spec.upper:g}]")
+            out[key] = arr
+        return out
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any]) -> "Material":
+        """Infer the material from ``"lobe.x"`` keys; string/bool values are options."""
+        lobes, options = [], {}
+        for key, value in params.items():
+            lobe = key.split(".", 1)[0]
+            if lobe not in lobes:
+                lobes.append(lobe)
+            if isinstance(value, (str, bool)) or (
+                    lobe in LOBES and _is_option(lobe, key.split(".", 1)[-1])):
+                options[key] = value
+        return cls.make(lobes, options)
+
+
+def _is_option(lobe: str, name: str) -> bool:
+    return any(o.name == name for o in LOBES[lobe].options)
+
+
+def _split_key(key: str, lobes) -> tuple[str, str]:
+    lobe, _, name = key.partition(".")
+    if not name or lobe not in lobes:
+        raise MaterialError(f"{key!r} does not name a lobe of this material "
+                            f"(lobes: {list(lobes)}); expected 'lobe.name'")
+    return lobe, name
+
+
+def _shaped(value, spec: Param) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    if spec.size == 1:
+        return arr.reshape(())
+    return np.broadcast_to(arr, (spec.size,)).copy()
+
+
+def lobe_params(params: Mapping[str, Any], lobe: str) -> dict[str, Any]:
+    """The ``{"param": value}`` sub-dict of one lobe from flat ``"lobe.param"`` keys."""
+    prefix = lobe + "."
+    return {k[len(prefix):]: v for k, v in params.items() if k.startswith(prefix)}
