@@ -1,0 +1,87 @@
+"""What a fit returns: values, uncertainties, diagnostics, all as plain data."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+STATUSES = ("converged", "max_steps", "failed")
+
+
+@dataclasses.dataclass
+class FitResult:
+    """Outcome of ``fitter.fit``.
+
+    Attributes:
+        params: every parameter of the material in user units,
+            ``{"lobe.param": float or (3,) array}`` (fixed ones included).
+        stderr: one-sigma standard errors of the free, identifiable
+            parameters (Gauss-Newton covariance s^2 (J^T J)^-1 mapped through
+            the parameter transforms by the delta method), same shapes.
+        free: names of the parameters that were fitted.
+        unidentifiable: parameters the data cannot constrain; they were held
+            at their initial value and have no stderr.
+        correlation: (n, n) correlation matrix of the free scalar
+            coordinates named in ``coordinates`` (``"lambert.rho_d[0]"``, ...).
+        coordinates: names of the rows of ``correlation``.
+        status: ``"converged"``, ``"max_steps"`` or ``"failed"``; only
+            ``"converged"`` means the solver met its tolerances *and* the fit
+            passed the goodness-of-fit check.
+        message: the solver's or the checker's reason, human readable.
+        iterations: solver steps of the kept start.
+        cost: 0.5 * sum of squared (weighted) residuals at the solution.
+        image_rmse: (3,) per-channel RMSE over the fitted pixels.
+        n_pixels: pixels used; n_excluded: pixels dropped (NaN/Inf, saturated,
+            outside the mask).
+        time_compile, time_run: seconds spent compiling and running.
+        warnings: human-readable warnings (unidentifiable parameters, bounds).
+        starts: one dict per start: ``{"params": ..., "cost": c, "status": s}``.
+    """
+
+    params: dict[str, Any]
+    stderr: dict[str, Any]
+    free: list[str]
+    unidentifiable: list[str]
+    correlation: np.ndarray
+    coordinates: list[str]
+    status: str
+    message: str
+    iterations: int
+    cost: float
+    image_rmse: np.ndarray
+    n_pixels: int
+    n_excluded: int
+    time_compile: float
+    time_run: float
+    warnings: list[str] = dataclasses.field(default_factory=list)
+    starts: list[dict] = dataclasses.field(default_factory=list)
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict in the result contract of the CLI (README, configs/README.md)."""
+        return {
+            "params": {k: _plain(v) for k, v in self.params.items()},
+            "stderr": {k: _plain(v) for k, v in self.stderr.items()},
+            "unidentifiable": list(self.unidentifiable),
+            "status": self.status,
+            "message": self.message,
+            "iterations": int(self.iterations),
+            "cost": float(self.cost),
+            "time_s": {"compile": float(self.time_compile), "run": float(self.time_run),
+                       "total": float(self.time_compile + self.time_run)},
+            "image_rmse": float(np.sqrt(np.mean(np.square(self.image_rmse)))),
+            "image_rmse_rgb": _plain(self.image_rmse),
+            "n_pixels": int(self.n_pixels),
+            "n_excluded": int(self.n_excluded),
+            "warnings": list(self.warnings),
+        }
+
+
+def _plain(v):
+    a = np.asarray(v, dtype=np.float64)
+    return float(a) if a.ndim == 0 else [float(x) for x in a.reshape(-1)]
