@@ -85,6 +85,8 @@ class Lobe:
     eval: Callable | None = None
     radiance: Callable | None = None
     doc: str = ""
+    #: ``mitsuba(p, opts) -> dict``: the equivalent Mitsuba 3 BSDF dict (see ``fitter.mitsuba``).
+    mitsuba: Callable | None = None
 
     def param(self, name: str) -> Param:
         for p in self.params:

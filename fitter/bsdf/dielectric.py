@@ -51,6 +51,13 @@ def _radiance(p, opts, hit, env):
     return out
 
 
+def _mitsuba(p, opts):
+    """Mitsuba's smooth ``dielectric`` (air outside: ext_ior = 1). The Beer-Lambert
+    ``attenuation`` is a medium, not a BSDF: ``fitter.mitsuba`` adds it as the
+    sphere's interior ``homogeneous`` medium."""
+    return {"type": "dielectric", "int_ior": float(p["eta"]), "ext_ior": 1.0}
+
+
 LOBE = Lobe(
     name="dielectric",
     kind="specular",
@@ -62,4 +69,5 @@ LOBE = Lobe(
     options=(Option("bounces", None, 8, "internal reflections followed (int >= 0)"),),
     radiance=_radiance,
     doc="Transparent sphere: Fresnel reflection + refraction, Beer-Lambert absorption.",
+    mitsuba=_mitsuba,
 )

@@ -12,6 +12,11 @@ def _eval(p, opts, n, wi, wo):
     return jnp.broadcast_to(p["rho_d"] / jnp.pi, n.shape)
 
 
+def _mitsuba(p, opts):
+    """Mitsuba's ``diffuse`` is exactly rho_d / pi."""
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": [float(x) for x in p["rho_d"]]}}
+
+
 LOBE = Lobe(
     name="lambert",
     kind="brdf",
@@ -20,4 +25,5 @@ LOBE = Lobe(
     ),
     eval=_eval,
     doc="Lambert: f = rho_d / pi.",
+    mitsuba=_mitsuba,
 )

@@ -14,10 +14,16 @@ def _radiance(p, opts, hit, env):
     return p["rho_m"] * env(reflect(hit.ray_dir, hit.normal))
 
 
+def _mitsuba(p, opts):
+    """Mitsuba's ``conductor`` with material ``none`` has Fresnel = 1, so f = rho_m."""
+    return {"type": "conductor", "material": "none", "specular_reflectance": {"type": "rgb", "value": [float(x) for x in p["rho_m"]]}}
+
+
 LOBE = Lobe(
     name="mirror",
     kind="specular",
     params=(Param("rho_m", 3, 1.0, 0.0, 1.0, "logit", "mirror reflectance, RGB"),),
     radiance=_radiance,
     doc="Perfect mirror reflecting the environment.",
+    mitsuba=_mitsuba,
 )

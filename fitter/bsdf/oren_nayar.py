@@ -40,6 +40,12 @@ def _eval(p, opts, n, wi, wo):
     return p["rho_d"] / jnp.pi * (a + b * term)[..., None]
 
 
+def _mitsuba(p, opts):
+    """Mitsuba has no Oren-Nayar: ``fitter.mitsuba`` registers this plugin."""
+    return {"type": "fitter_oren_nayar", "reflectance": {"type": "rgb", "value": [float(x) for x in p["rho_d"]]},
+            "sigma": float(p["sigma"])}
+
+
 LOBE = Lobe(
     name="oren_nayar",
     kind="brdf",
@@ -50,4 +56,5 @@ LOBE = Lobe(
     ),
     eval=_eval,
     doc="Oren-Nayar (qualitative A/B form); sigma = 0 is Lambert.",
+    mitsuba=_mitsuba,
 )

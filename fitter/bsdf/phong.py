@@ -28,6 +28,12 @@ def _eval(p, opts, n, wi, wo):
     return p["rho_s"] * lobe[..., None]
 
 
+def _mitsuba(p, opts):
+    """Mitsuba has no Phong: ``fitter.mitsuba`` registers this plugin."""
+    return {"type": "fitter_phong", "specular_reflectance": {"type": "rgb", "value": [float(x) for x in p["rho_s"]]},
+            "exponent": float(p["e"]), "normalized": bool(opts["normalized"])}
+
+
 LOBE = Lobe(
     name="phong",
     kind="brdf",
@@ -38,4 +44,5 @@ LOBE = Lobe(
     options=(Option("normalized", (False, True), False, "scale by (e + 2) / (2 pi)"),),
     eval=_eval,
     doc="Phong lobe rho_s cos^e(alpha), optionally energy-normalised.",
+    mitsuba=_mitsuba,
 )

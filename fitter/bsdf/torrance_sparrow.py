@@ -44,6 +44,17 @@ def _eval(p, opts, n, wi, wo):
     return p["rho_s"] * value[..., None]
 
 
+def _mitsuba(p, opts):
+    """``smith``: Mitsuba's ``roughconductor`` (Beckmann, alpha = m, k = 0 gives the
+    dielectric Fresnel); ``v_groove``: the ``fitter_torrance_sparrow`` plugin."""
+    scale = {"type": "rgb", "value": [float(p["rho_s"])] * 3}
+    if opts["geometry"] == "smith":
+        return {"type": "roughconductor", "distribution": "beckmann", "alpha": float(p["m"]),
+                "eta": float(p["eta"]), "k": 0.0, "specular_reflectance": scale}
+    return {"type": "fitter_torrance_sparrow", "alpha": float(p["m"]),
+            "eta": float(p["eta"]), "specular_reflectance": scale}
+
+
 LOBE = Lobe(
     name="torrance_sparrow",
     kind="brdf",
@@ -57,4 +68,5 @@ LOBE = Lobe(
                     "shadowing-masking term G"),),
     eval=_eval,
     doc="Torrance-Sparrow: D G F / (pi cos_i cos_o), Beckmann D.",
+    mitsuba=_mitsuba,
 )
