@@ -186,8 +186,8 @@ class _Reader:
         self.path = path
 
     def error(self, key: str, problem: str) -> ConfigError:
-        where = f"{key}: " if key else ""
-        return ConfigError(f"{self.path}: {where}{problem}")
+        sep = " " if problem.startswith("=") else ": "
+        return ConfigError(f"{self.path}: {key}{sep}{problem}" if key else f"{self.path}: {problem}")
 
     def table(self, tbl, where: str, allowed) -> None:
         if not isinstance(tbl, Mapping):
