@@ -1,0 +1,439 @@
+"""The fit driver: target image -> FitResult.
+
+Flow: choose pixels -> build the problem -> hold unidentifiable parameters ->
+solve from one or more starts (one compiled call) -> keep the lowest cost ->
+re-check identifiability at the solution -> covariance -> FitResult.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .. import transforms
+from ..geometry import Geometry
+from ..material import Material, MaterialError
+from ..render import Renderer
+from ..scene import Scene
+from ._problem import LOSSES, Block, Data, Spec, params_from_z, residuals, z_from_params
+from ._solvers import SOLVERS, make_solver
+from ._starts import starts as make_starts
+from .result import FitResult
+
+#: A column of the Jacobian this much smaller than the largest one means the
+#: image does not depend on that parameter at all.
+ZERO_COLUMN = 1e-9
+#: Condition number of the column-normalised Jacobian beyond which the
+#: direction of the smallest singular value is taken as unidentifiable.
+MAX_CONDITION = 1e8
+#: Standard error in the unconstrained coordinate beyond which a parameter is
+#: reported unidentifiable (the coordinate spans about +-14 over the box).
+MAX_Z_STDERR = 3.0
+#: A fitted value within this fraction of its range from a box edge is "at bound".
+AT_BOUND = 1e-4
+#: With a known noise sigma, chi^2 per degree of freedom above this fails the fit.
+MAX_REDUCED_CHI2 = 2.0
+#: Default step budgets.
+MAX_STEPS = {"adam": 5000, "bfgs": 1000}
+DEFAULT_MAX_STEPS = 200
+
+
+class FitError(ValueError):
+    """A fit that cannot be set up (message says what to change)."""
+
+
+_COMPILED: dict = {}
+
+
+def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps: int):
+    solver = make_solver(solver_name, rtol, atol)
+
+    def fn(z, data):
+        return residuals(z, data, spec)
+
+    def one(z0, data):
+        sol = optx.least_squares(fn, solver, z0, args=data, max_steps=max_steps, throw=False)
+        r = fn(sol.value, data)
+        return sol.value, sol.result._value, sol.stats["num_steps"], 0.5 * jnp.sum(r * r)
+
+    def many(z0s, data):
+        return jax.lax.map(lambda z0: one(z0, data), z0s)
+
+    return many
+
+
+def _compiled(kind, spec, args, **static):
+    """Compile (once per structure and shapes) and return (executable, seconds spent)."""
+    shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
+    key = (kind, spec, tuple(sorted(static.items())), str(shapes))
+    if key in _COMPILED:
+        return _COMPILED[key], 0.0
+    if kind == "solve":
+        f = _solve_fn(spec, **static)
+    elif kind == "jac":
+        f = jax.jacfwd(lambda z, data: residuals(z, data, spec))
+    else:
+        f = lambda z, data: residuals(z, data, spec)  # noqa: E731
+    t0 = time.perf_counter()
+    exe = jax.jit(f).lower(*args).compile()
+    _COMPILED[key] = exe
+    return exe, time.perf_counter() - t0
+
+
+def _as_material(material) -> Material:
+    return material if isinstance(material, Material) else Material.make(material)
+
+
+def _subset(geo: Geometry, rows: np.ndarray) -> Geometry:
+    pick = lambda a: a[rows]  # noqa: E731
+    return geo._replace(
+        pixel_index=pick(geo.pixel_index), hit=pick(geo.hit), position=pick(geo.position),
+        normal=pick(geo.normal), ray_dir=pick(geo.ray_dir),
+        light_dir=geo.light_dir[:, rows], light_irradiance=geo.light_irradiance[:, rows],
+        background=pick(geo.background))
+
+
+def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
+    """Rows of the renderer's active pixels to fit, and how many were dropped.
+
+    ``mask``: ``"interior"`` (pixels whose every sub-pixel sample hits the
+    sphere; default), ``"active"`` (any sample hits) or an (H, W) bool array.
+    Pixels with a NaN/Inf or negative value, in ``exclude``, or with a
+    channel at/above ``saturation`` are dropped.
+    """
+    geo = renderer.geometry
+    h, w = renderer.scene.height, renderer.scene.width
+    flat = target.reshape(h * w, 3)[renderer.pixel_index]
+    hit = np.asarray(geo.hit)
+    if isinstance(mask, str):
+        if mask == "interior":
+            chosen = hit.all(axis=1)
+        elif mask == "active":
+            chosen = np.ones(hit.shape[0], dtype=bool)
+        else:
+            raise FitError(f"mask = {mask!r}: expected 'interior', 'active' or an (H, W) array")
+    else:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != (h, w):
+            raise FitError(f"mask has shape {m.shape}, expected {(h, w)}")
+        chosen = m.reshape(-1)[renderer.pixel_index]
+    good = np.all(np.isfinite(flat), axis=1) & np.all(flat >= 0, axis=1)
+    if exclude is not None:
+        ex = np.asarray(exclude, dtype=bool)
+        if ex.shape != (h, w):
+            raise FitError(f"exclude has shape {ex.shape}, expected {(h, w)}")
+        good &= ~ex.reshape(-1)[renderer.pixel_index]
+    if saturation is not None:
+        good &= np.all(np.where(np.isfinite(flat), flat, 0) < saturation, axis=1)
+    rows = np.nonzero(chosen & good)[0]
+    return rows, int(chosen.sum() - rows.size), flat
+
+
+def _blocks(material: Material, init_full, fixed, bounds) -> tuple[tuple[Block, ...], dict]:
+    specs = material.param_specs()
+    blocks, fixed_values = [], {}
+    for key, spec in specs.items():
+        lo, hi = spec.lower, spec.upper
+        if bounds and key in bounds:
+            lo, hi = (float(v) for v in bounds[key])
+            if not (spec.lower <= lo < hi <= spec.upper):
+                raise FitError(f"bounds for {key} = {(lo, hi)} must satisfy "
+                               f"{spec.lower:g} <= lower < upper <= {spec.upper:g}")
+        if key in fixed:
+            fixed_values[key] = init_full[key]
+        else:
+            blocks.append(Block(key, spec.size, spec.transform, lo, hi))
+    return tuple(blocks), fixed_values
+
+
+def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None,
+        fixed: Mapping[str, Any] | None = None, bounds: Mapping[str, tuple] | None = None,
+        solver: str = "levenberg_marquardt", mask="interior", exclude=None, weights=None,
+        noise_sigma: float | None = None, loss: str = "l2", loss_scale: float | None = None,
+        saturation: float | None = None, n_starts: int = 1, max_steps: int | None = None,
+        rtol: float = 1e-8, atol: float = 1e-10, dtype=jnp.float64,
+        base_dir: str | None = None, identifiability: bool = True) -> FitResult:
+    """Fit the material's parameters to a target image.
+
+    Args:
+        target: (H, W, 3) linear RGB radiance of the scene's image.
+        scene: the known camera, sphere, lights and environment.
+        material: a ``Material``, a lobe list, or a ``"lambert+phong"`` string.
+        init: initial values ``{"lobe.param": value}``; missing ones take the
+            lobe's default. A parameter that is fixed by default (e.g.
+            ``torrance_sparrow.rho_s``) is freed by giving it here.
+        fixed: values held fixed (option values such as
+            ``"torrance_sparrow.geometry": "smith"`` may also stand here).
+        bounds: narrower ``(lower, upper)`` per parameter (inside its box).
+        solver: one of ``SOLVERS``.
+        mask, exclude, saturation: pixel selection (see ``select_pixels``).
+        weights: (H, W) or (H, W, 3) per-pixel residual weights.
+        noise_sigma: known pixel noise standard deviation: residuals are
+            divided by it, standard errors use it instead of the residual
+            estimate, and chi^2 / dof > ``MAX_REDUCED_CHI2`` fails the fit.
+        loss: ``"l2"``, ``"huber"`` or ``"cauchy"`` with scale ``loss_scale``
+            (in units of the weighted residual; default 1 if noise_sigma is
+            given, else 0.01).
+        n_starts: number of starts: ``init`` plus ``n_starts - 1`` points of
+            a Halton sequence over the parameter box (``fitter.fit._starts``);
+            the lowest final cost is kept, all are reported.
+        max_steps, rtol, atol: solver budget and tolerances.
+        dtype: ``jnp.float64`` (default) or ``jnp.float32``.
+        identifiability: hold and report parameters the data cannot constrain.
+
+    Returns:
+        A ``FitResult``; failures are reported in ``status``/``message``,
+        not raised. Raises ``FitError`` / ``MaterialError`` for bad input.
+    """
+    t_start = time.perf_counter()
+    material = _as_material(material)
+    if solver not in SOLVERS:
+        raise FitError(f"unknown solver {solver!r}; known: {', '.join(SOLVERS)}")
+    if loss not in LOSSES:
+        raise FitError(f"unknown loss {loss!r}; known: {', '.join(LOSSES)}")
+    if n_starts < 1:
+        raise FitError(f"n_starts = {n_starts} must be >= 1")
+    target = np.asarray(target, dtype=np.float64)
+    if target.shape != (scene.height, scene.width, 3):
+        raise FitError(f"target has shape {target.shape}, expected "
+                       f"{(scene.height, scene.width, 3)} from the scene")
+    options = {k: v for k, v in {**(init or {}), **(fixed or {})}.items()
+               if k in material.option_keys()}
+    if options:
+        material = Material.make(material.lobes, {**dict(material.options), **options})
+    numeric_fixed = {k: v for k, v in (fixed or {}).items() if k not in material.option_keys()}
+    numeric_init = {k: v for k, v in (init or {}).items() if k not in material.option_keys()}
+    overlap = set(numeric_fixed) & set(numeric_init)
+    if overlap:
+        raise FitError(f"{sorted(overlap)} given both as initial and as fixed values")
+    init_full = material.full_params({**numeric_init, **numeric_fixed})
+    fixed_keys = set(numeric_fixed) | {k for k, s in material.param_specs().items()
+                                       if not s.free and k not in numeric_init}
+
+    renderer = Renderer(scene, material, dtype, base_dir)
+    rows, n_dropped, flat_target = select_pixels(renderer, target, mask, exclude, saturation)
+    if rows.size == 0:
+        raise FitError("no pixels to fit: the mask selects none, or every selected pixel "
+                       "is NaN/Inf, negative, excluded or saturated")
+    w = np.ones((rows.size, 3))
+    if weights is not None:
+        wt = np.broadcast_to(np.asarray(weights, dtype=np.float64)[..., None]
+                             if np.ndim(weights) == 2 else np.asarray(weights, dtype=np.float64),
+                             (scene.height, scene.width, 3))
+        w = wt.reshape(-1, 3)[renderer.pixel_index][rows]
+    if noise_sigma is not None:
+        if not noise_sigma > 0:
+            raise FitError(f"noise_sigma = {noise_sigma} must be > 0")
+        w = w / noise_sigma
+    scale = loss_scale if loss_scale is not None else (1.0 if noise_sigma else 0.01)
+
+    blocks, fixed_values = _blocks(material, init_full, fixed_keys, bounds)
+    cast = lambda a: jnp.asarray(a, dtype=dtype)  # noqa: E731
+    data = Data(_subset(renderer.geometry, rows), renderer.env, renderer.sphere,
+                cast(flat_target[rows]), cast(w), {})
+    warnings: list[str] = []
+    unidentifiable: list[str] = []
+    t_compile = 0.0
+
+    def make(blocks_):
+        fixed_now = {k: cast(v) for k, v in init_full.items()
+                     if k not in {b.key for b in blocks_}}
+        return Spec(material, renderer.env_type, blocks_, loss, scale), data._replace(fixed=fixed_now)
+
+    spec, data_ = make(blocks)
+    if not blocks:
+        raise FitError("every parameter is fixed: nothing to fit")
+
+    # Parameters the image does not depend on at the start are held.
+    if identifiability:
+        z0 = cast(z_from_params(spec, init_full))
+        jac, tc = _compiled("jac", spec, (z0, data_))
+        t_compile += tc
+        norms = np.linalg.norm(np.asarray(jac(z0, data_)), axis=0)
+        dead = _blocks_of(spec, norms <= ZERO_COLUMN * max(norms.max(), 1e-300))
+        for key in dead:
+            unidentifiable.append(key)
+            warnings.append(f"{key} does not change the fitted pixels at the start "
+                            f"(zero Jacobian column); held at {_fmt(init_full[key])}")
+        blocks = tuple(b for b in blocks if b.key not in dead)
+        if not blocks:
+            return _all_held(init_full, unidentifiable, warnings, rows.size, n_dropped,
+                             t_compile, time.perf_counter() - t_start - t_compile)
+        spec, data_ = make(blocks)
+
+    steps = max_steps or MAX_STEPS.get(solver, DEFAULT_MAX_STEPS)
+    static = dict(solver_name=solver, rtol=rtol, atol=atol, max_steps=steps)
+    z_init = z_from_params(spec, init_full)
+    z0s = cast(make_starts(spec, z_init, n_starts))
+    solve, tc = _compiled("solve", spec, (z0s, data_), **static)
+    t_compile += tc
+    zs, codes, nsteps, costs = (np.asarray(a) for a in solve(z0s, data_))
+    best = _best(costs, zs)
+    z_best, code, iters, cost = zs[best], int(codes[best]), int(nsteps[best]), float(costs[best])
+    starts = [{"params": _user(spec, zs[i], data_), "cost": float(costs[i]),
+               "status": _status(int(codes[i]), zs[i], costs[i])} for i in range(len(costs))]
+
+    # Re-check at the solution: a parameter with no usable information is held.
+    if identifiability and np.isfinite(cost):
+        held = _unidentifiable_at(spec, z_best, data_, noise_sigma, rows.size, t_compile)
+        if held:
+            keys, tc, reasons = held
+            t_compile += tc
+            unidentifiable += keys
+            warnings += reasons
+            user_best = _user(spec, z_best, data_)
+            for k in keys:
+                init_full[k] = np.asarray(init_full[k])  # held at its initial value
+            blocks = tuple(b for b in blocks if b.key not in keys)
+            if not blocks:
+                return _all_held(init_full, unidentifiable, warnings, rows.size, n_dropped,
+                                 t_compile, time.perf_counter() - t_start - t_compile)
+            spec, data_ = make(blocks)
+            z1 = cast(z_from_params(spec, {**init_full, **{k: v for k, v in user_best.items()
+                                                         if k not in keys}})[None])
+            solve, tc = _compiled("solve", spec, (z1, data_), **static)
+            t_compile += tc
+            zs1, codes1, nsteps1, costs1 = (np.asarray(a) for a in solve(z1, data_))
+            z_best, code, cost = zs1[0], int(codes1[0]), float(costs1[0])
+            iters += int(nsteps1[0])
+
+    status = _status(code, z_best, cost)
+    message = optx.RESULTS._index_to_message[code] or "solver tolerances met"
+    jac, tc = _compiled("jac", spec, (cast(z_best), data_))
+    t_compile += tc
+    J = np.asarray(jac(cast(z_best), data_))
+    r = np.asarray(_compiled("res", spec, (cast(z_best), data_))[0](cast(z_best), data_))
+    n_obs = int(np.count_nonzero(np.asarray(data_.weights)))
+    dof = max(n_obs - spec.n, 1)
+    chi2 = float(r @ r)
+    s2 = 1.0 if noise_sigma is not None else chi2 / dof
+    if noise_sigma is not None and status == "converged" and chi2 / dof > MAX_REDUCED_CHI2:
+        status = "failed"
+        message = (f"poor fit: chi^2/dof = {chi2 / dof:.3g} > {MAX_REDUCED_CHI2} for the given "
+                   "noise_sigma (a local minimum or a model that cannot explain the image; "
+                   "try n_starts > 1)")
+    cov_z = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
+    if not np.all(np.isfinite(cov_z)):
+        cov_z = np.full_like(cov_z, np.nan)
+        status, message = "failed", "covariance is not finite"
+    params = _user(spec, z_best, data_)
+    stderr, coords = {}, []
+    dxdz = np.concatenate([np.atleast_1d(np.asarray(
+        transforms.derivative(b.transform, jnp.asarray(z_best[sl]), b.lower, b.upper)))
+        for b, sl in spec.slices()])
+    sd = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * dxdz
+    for b, sl in spec.slices():
+        stderr[b.key] = sd[sl] if b.size == 3 else float(sd[sl][0])
+        coords += [b.key] if b.size == 1 else [f"{b.key}[{i}]" for i in range(3)]
+        u = (np.asarray(params[b.key]) - b.lower) / (b.upper - b.lower)
+        if np.any((u < AT_BOUND) | (u > 1 - AT_BOUND)):
+            warnings.append(f"{b.key} = {_fmt(params[b.key])} is at the bound of "
+                            f"[{b.lower:g}, {b.upper:g}]; its standard error is not meaningful")
+    d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
+    corr = cov_z / np.outer(d, d)
+    model = flat_target[rows] + r.reshape(-1, 3) / np.where(w > 0, w, 1.0) \
+        if loss == "l2" else None
+    if model is None:
+        p_all = params_from_z(spec, cast(z_best), data_.fixed)
+        model = np.asarray(renderer.active(p_all))[rows]
+    rmse = np.sqrt(np.mean((model - flat_target[rows]) ** 2, axis=0))
+    total = time.perf_counter() - t_start
+    return FitResult(
+        params={k: (np.asarray(params[k]) if np.size(params[k]) > 1 else float(params[k]))
+                for k in material.param_specs()},
+        stderr=stderr, free=[b.key for b in spec.blocks], unidentifiable=unidentifiable,
+        correlation=corr, coordinates=coords, status=status, message=message,
+        iterations=iters, cost=cost, image_rmse=rmse, n_pixels=int(rows.size),
+        n_excluded=n_dropped, time_compile=t_compile, time_run=total - t_compile,
+        warnings=warnings, starts=starts)
+
+
+def _fmt(v) -> str:
+    a = np.asarray(v)
+    return f"{float(a):.6g}" if a.ndim == 0 else "[" + ", ".join(f"{x:.6g}" for x in a) + "]"
+
+
+def _best(costs, zs) -> int:
+    ok = np.isfinite(costs) & np.all(np.isfinite(zs), axis=1)
+    if not ok.any():
+        return 0
+    return int(np.argmin(np.where(ok, costs, np.inf)))
+
+
+def _status(code: int, z, cost) -> str:
+    if not (np.all(np.isfinite(z)) and np.isfinite(cost)):
+        return "failed"
+    if code == 0:
+        return "converged"
+    if code == int(optx.RESULTS.max_steps_reached._value):
+        return "max_steps"
+    return "failed"
+
+
+def _user(spec: Spec, z, data: Data) -> dict:
+    p = params_from_z(spec, jnp.asarray(z), data.fixed)
+    return {k: np.asarray(v) for k, v in p.items()}
+
+
+def _blocks_of(spec: Spec, flags: np.ndarray) -> list[str]:
+    return [b.key for b, sl in spec.slices() if np.any(flags[sl])]
+
+
+def _unidentifiable_at(spec, z, data, noise_sigma, n_pix, t_compile):
+    """Blocks without usable information at ``z``: (keys, compile seconds, reasons) or None."""
+    cast = lambda a: jnp.asarray(a, dtype=data.target.dtype)  # noqa: E731
+    jac, tc = _compiled("jac", spec, (cast(z), data))
+    J = np.asarray(jac(cast(z), data))
+    res, tc2 = _compiled("res", spec, (cast(z), data))
+    r = np.asarray(res(cast(z), data))
+    norms = np.linalg.norm(J, axis=0)
+    keys, reasons = [], []
+    if not np.all(np.isfinite(J)):
+        return None
+    dead = norms <= ZERO_COLUMN * max(norms.max(), 1e-300)
+    for k in _blocks_of(spec, dead):
+        keys.append(k)
+        reasons.append(f"{k} does not change the fitted pixels at the solution; held at its "
+                       "initial value")
+    live = ~dead
+    if live.sum() >= 2:
+        Jn = J[:, live] / norms[live]
+        _, sv, vt = np.linalg.svd(Jn, full_matrices=False)
+        cond = sv[0] / max(sv[-1], 1e-300)
+        if cond > MAX_CONDITION:
+            idx = np.nonzero(live)[0][int(np.argmax(np.abs(vt[-1])))]
+            flag = np.zeros_like(dead)
+            flag[idx] = True
+            for k in _blocks_of(spec, flag):
+                if k not in keys:
+                    keys.append(k)
+                    reasons.append(f"{k} is not separable from the other parameters "
+                                   f"(Jacobian condition number {cond:.2g}); held at its "
+                                   "initial value")
+    dof = max(r.size - J.shape[1], 1)
+    s2 = 1.0 if noise_sigma is not None else float(r @ r) / dof
+    if s2 > 0 and not keys:
+        cov = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
+        sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        at_edge = np.concatenate([np.atleast_1d(np.abs(np.asarray(z[sl])) > 9.0)
+                                  for _, sl in spec.slices()])
+        loose = (sd > MAX_Z_STDERR) & ~at_edge
+        for k in _blocks_of(spec, loose):
+            keys.append(k)
+            reasons.append(f"{k} is not constrained by the image (standard error larger than "
+                           "its whole range); held at its initial value")
+    return (keys, tc + tc2, reasons) if keys else None
+
+
+def _all_held(init_full, unidentifiable, warnings, n_pix, n_drop, tc, tr) -> FitResult:
+    return FitResult(
+        params={k: (np.asarray(v) if np.size(v) > 1 else float(v)) for k, v in init_full.items()},
+        stderr={}, free=[], unidentifiable=unidentifiable, correlation=np.zeros((0, 0)),
+        coordinates=[], status="failed", message="no parameter is identifiable from this image",
+        iterations=0, cost=float("nan"), image_rmse=np.full(3, np.nan), n_pixels=n_pix,
+        n_excluded=n_drop, time_compile=tc, time_run=tr, warnings=warnings)

@@ -1,0 +1,114 @@
+"""The least-squares problem of a fit: coordinates, residuals, robust losses.
+
+Everything the jitted solver needs is split into hashable static structure
+(``Spec``) and array data (``Data``), so one compiled solver serves every fit
+of the same shapes (and the persistent compilation cache can reuse it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+
+from .. import transforms
+from ..environment import EnvData
+from ..geometry import Geometry
+from ..material import Material
+from ..render import render_active
+
+LOSSES = ("l2", "huber", "cauchy")
+
+
+@dataclasses.dataclass(frozen=True)
+class Block:
+    """One free parameter: its key, size (1 or 3) and transform box."""
+
+    key: str
+    size: int
+    transform: str
+    lower: float
+    upper: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Spec:
+    """Static structure of a fit (a jit cache key)."""
+
+    material: Material
+    env_type: str
+    blocks: tuple[Block, ...]
+    loss: str = "l2"
+    loss_scale: float = 1.0
+
+    @property
+    def n(self) -> int:
+        return sum(b.size for b in self.blocks)
+
+    def slices(self):
+        start = 0
+        for b in self.blocks:
+            yield b, slice(start, start + b.size)
+            start += b.size
+
+
+class Data(NamedTuple):
+    """Arrays of a fit: geometry of the fitted pixels, target, weights, fixed values."""
+
+    geometry: Geometry
+    env: EnvData
+    sphere: Any
+    target: jnp.ndarray  # (P, 3)
+    weights: jnp.ndarray  # (P, 3); 0 drops a value
+    fixed: dict
+
+
+def params_from_z(spec: Spec, z, fixed: dict) -> dict:
+    """Complete user-unit parameters from coordinates ``z`` (n,) and fixed values."""
+    params = dict(fixed)
+    for b, sl in spec.slices():
+        x = transforms.to_user(b.transform, z[sl], b.lower, b.upper)
+        params[b.key] = x if b.size == 3 else x[0]
+    return params
+
+
+def z_from_params(spec: Spec, params: dict):
+    import numpy as np
+
+    return np.concatenate([
+        np.atleast_1d(transforms.to_unconstrained(b.transform, params[b.key], b.lower, b.upper))
+        for b in spec.blocks]) if spec.blocks else np.zeros(0)
+
+
+def robust(r, loss: str, scale: float):
+    """Residuals whose squares sum to 2 * sum rho(r): least squares with a robust loss.
+
+    huber: rho = r^2/2 for |r| <= c, c(|r| - c/2) beyond; cauchy:
+    rho = c^2/2 log(1 + (r/c)^2). Written as r * sqrt(2 rho(r) / r^2), which
+    is smooth through r = 0 (Triggs et al. 2000, "Bundle adjustment",
+    sec. 4.3, square-rooted robust cost).
+    """
+    if loss == "l2":
+        return r
+    u = r / scale
+    u2 = u * u
+    small = u2 < 1e-12
+    safe_u2 = jnp.where(small, 1.0, u2)
+    if loss == "huber":
+        au = jnp.sqrt(safe_u2)
+        factor = jnp.where(au <= 1.0, 1.0, (2.0 * au - 1.0) / safe_u2)
+    elif loss == "cauchy":
+        factor = jnp.log1p(safe_u2) / safe_u2
+    else:
+        raise ValueError(f"unknown loss {loss!r}; known: {LOSSES}")
+    return r * jnp.sqrt(jnp.where(small, 1.0, factor))
+
+
+def residuals(z, data: Data, spec: Spec):
+    """Weighted (robust) residuals (model - target), flattened to (P*3,)."""
+    params = params_from_z(spec, z, data.fixed)
+    model = render_active(params, data.geometry, data.env, data.sphere,
+                          material=spec.material, env_type=spec.env_type)
+    r = (model - data.target) * data.weights
+    return robust(r, spec.loss, spec.loss_scale).reshape(-1)

@@ -1,0 +1,63 @@
+"""Maps between user parameters and the solver's unconstrained coordinates.
+
+Every parameter is fitted in a coordinate z in R that is O(1) over its range,
+so Levenberg-Marquardt's damping lambda*I (not scale invariant) treats all
+parameters alike and no step can leave the valid box:
+
+* ``logit`` / ``box`` / ``eta``: x = lo + (hi - lo) sigmoid(z), for bounded
+  parameters (reflectances, sigma, eta in [1, 4]; eta = 1 is the limit
+  z -> -inf, approached without NaN);
+* ``log``: log x = log lo + (log hi - log lo) sigmoid(z), for positive scales
+  spanning decades (Beckmann m, Phong e).
+
+The box edges themselves are limits, so ``to_unconstrained`` nudges values
+on an edge inside by ``EDGE`` of the range.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+#: Fraction of the range by which a start on the box edge is moved inside.
+EDGE = 1e-6
+
+TRANSFORMS = ("logit", "box", "eta", "log")
+
+
+def _is_log(kind: str) -> bool:
+    if kind not in TRANSFORMS:
+        raise ValueError(f"unknown transform {kind!r}; known: {TRANSFORMS}")
+    return kind == "log"
+
+
+def to_user(kind: str, z, lo: float, hi: float):
+    """User value x(z) (JAX, differentiable)."""
+    s = jax.nn.sigmoid(z)
+    if _is_log(kind):
+        a, b = np.log(lo), np.log(hi)
+        return jnp.exp(a + (b - a) * s)
+    return lo + (hi - lo) * s
+
+
+def to_unconstrained(kind: str, x, lo: float, hi: float):
+    """Coordinate z(x) (NumPy); x is clipped EDGE inside [lo, hi]."""
+    x = np.asarray(x, dtype=np.float64)
+    if _is_log(kind):
+        a, b = np.log(lo), np.log(hi)
+        u = (np.log(np.maximum(x, lo)) - a) / (b - a)
+    else:
+        u = (x - lo) / (hi - lo)
+    u = np.clip(u, EDGE, 1.0 - EDGE)
+    return np.log(u) - np.log1p(-u)
+
+
+def derivative(kind: str, z, lo: float, hi: float):
+    """dx/dz, for mapping standard errors by the delta method."""
+    s = jax.nn.sigmoid(z)
+    ds = s * (1.0 - s)
+    if _is_log(kind):
+        a, b = np.log(lo), np.log(hi)
+        return jnp.exp(a + (b - a) * s) * (b - a) * ds
+    return (hi - lo) * ds
