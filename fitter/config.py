@@ -36,6 +36,7 @@ from .scene import Camera, DirectionalLight, Environment, PointLight, Scene, Sph
 FALLBACK_SOLVERS = ("levenberg_marquardt", "dogleg", "gauss_newton", "bfgs", "adam")
 LOSSES = ("l2", "huber", "cauchy")
 DTYPES = ("float64", "float32")
+MASKS = ("interior", "active")
 CAMERA_TYPES = ("perspective", "orthographic")
 LIGHT_TYPES = ("point", "directional")
 ENVIRONMENT_TYPES = ("black", "constant", "envmap")
@@ -63,8 +64,11 @@ class FitOptions:
             command line instead).
         solver: one of ``fitter.fit.SOLVERS``.
         n_starts: number of starts (the lowest-cost one is kept).
-        max_steps: solver step limit per start.
-        rtol, atol: solver tolerances.
+        max_steps: solver step limit per start (None: the engine's default
+            for the solver).
+        rtol, atol: solver tolerances (None: the engine's defaults).
+        mask: which pixels are fitted: ``"interior"`` (every sub-pixel
+            sample hits the sphere) or ``"active"`` (any sample hits).
         noise_sigma: per-pixel noise standard deviation of the target (linear
             units) if known; enables the chi^2 goodness-of-fit test.
         loss: ``"l2"``, ``"huber"`` or ``"cauchy"``.
@@ -78,9 +82,10 @@ class FitOptions:
     target: str | None = None
     solver: str = "levenberg_marquardt"
     n_starts: int = 1
-    max_steps: int = 200
-    rtol: float = 1e-10
-    atol: float = 1e-12
+    max_steps: int | None = None
+    rtol: float | None = None
+    atol: float | None = None
+    mask: str = "interior"
     noise_sigma: float | None = None
     loss: str = "l2"
     validate: bool = True
@@ -475,13 +480,15 @@ def _fit(r: _Reader, tbl: dict, base_dir: str) -> FitOptions:
         target = _resolve(base_dir, r.string(tbl["target"], "fit.target"))
     noise = tbl.get("noise_sigma")
     sat = tbl.get("saturation")
+    steps, rtol, atol = tbl.get("max_steps"), tbl.get("rtol"), tbl.get("atol")
     return FitOptions(
         target=target,
         solver=r.choice(tbl.get("solver", d.solver), "fit.solver", solvers()),
         n_starts=r.integer(tbl.get("n_starts", d.n_starts), "fit.n_starts", lo=1),
-        max_steps=r.integer(tbl.get("max_steps", d.max_steps), "fit.max_steps", lo=1),
-        rtol=r.number(tbl.get("rtol", d.rtol), "fit.rtol", lo=0.0, lo_open=True),
-        atol=r.number(tbl.get("atol", d.atol), "fit.atol", lo=0.0, lo_open=True),
+        max_steps=None if steps is None else r.integer(steps, "fit.max_steps", lo=1),
+        rtol=None if rtol is None else r.number(rtol, "fit.rtol", lo=0.0, lo_open=True),
+        atol=None if atol is None else r.number(atol, "fit.atol", lo=0.0, lo_open=True),
+        mask=r.choice(tbl.get("mask", d.mask), "fit.mask", MASKS),
         noise_sigma=None if noise is None else r.number(noise, "fit.noise_sigma", lo=0.0,
                                                         lo_open=True),
         loss=r.choice(tbl.get("loss", d.loss), "fit.loss", LOSSES),

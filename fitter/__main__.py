@@ -1,0 +1,5 @@
+"""``python -m fitter``: the same command line as the ``fitter`` console script."""
+
+from .cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,212 @@
+"""``report.png``: one picture that says whether a fit is good.
+
+Top: the verdict (status, Mitsuba PSNR / colour difference) in green or red.
+Middle: target | fit | residual heat map | Mitsuba validation, the three
+renders on one display scale. Bottom: the parameter table (fit ± stderr,
+truth and error when known) and the fit's figures and warnings.
+
+Matplotlib runs on the Agg backend (no display needed).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any, Mapping
+
+import numpy as np
+
+#: Percentile of the target's pixel values mapped to display white.
+WHITE_PERCENTILE = 99.5
+#: Percentile of |residual| that sets the residual colour scale.
+RESIDUAL_PERCENTILE = 99.5
+#: A parameter whose |fit - truth| exceeds this many standard errors is flagged.
+FLAG_SIGMAS = 3.0
+
+GOOD, BAD, NEUTRAL = "#1a7f37", "#c62828", "#555555"
+
+
+def display(image: np.ndarray, white: float) -> np.ndarray:
+    """Linear (H, W, 3) -> sRGB-encoded display values in [0, 1], ``white`` -> 1."""
+    from .imageio import linear_to_srgb
+
+    return linear_to_srgb(np.asarray(image, dtype=np.float64) / white)
+
+
+def make_report(path: str, *, target: np.ndarray, fit: np.ndarray,
+                validation: np.ndarray | None, result: Mapping[str, Any],
+                exclude: np.ndarray | None = None, title: str = "") -> None:
+    """Write the report PNG to ``path``.
+
+    Args:
+        target, fit: (H, W, 3) linear RGB.
+        validation: (H, W, 3) Mitsuba re-render, or None when not validated.
+        result: the result dict (``params``, ``stderr``, ``status``, ...,
+            optionally ``truth_error`` and ``validation``).
+        exclude: (H, W) bool pixels left out of the fit (drawn grey in the
+            residual).
+        title: headline, e.g. the config name and lobes.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    target = np.asarray(target, dtype=np.float64)
+    fit = np.asarray(fit, dtype=np.float64)
+    positive = target[target > 0]
+    white = float(np.percentile(positive, WHITE_PERCENTILE)) if positive.size else 1.0
+
+    fig = plt.figure(figsize=(17, 8.6), dpi=100)
+    grid = fig.add_gridspec(3, 4, height_ratios=[0.45, 4.2, 2.1], hspace=0.18, wspace=0.12,
+                            left=0.02, right=0.98, top=0.97, bottom=0.03)
+    _headline(fig.add_subplot(grid[0, :]), result, title)
+
+    panels = [(target, "target"), (fit, "fit (JAX forward model)")]
+    for col, (img, name) in enumerate(panels):
+        ax = fig.add_subplot(grid[1, col])
+        ax.imshow(display(img, white), interpolation="nearest")
+        _frame(ax, name)
+    _residual(fig, fig.add_subplot(grid[1, 2]), target - fit, exclude)
+    ax = fig.add_subplot(grid[1, 3])
+    if validation is not None:
+        ax.imshow(display(validation, white), interpolation="nearest")
+        _frame(ax, "validation (Mitsuba 3)")
+    else:
+        ax.text(0.5, 0.5, "not validated\n(--no-validate)", ha="center", va="center",
+                color=NEUTRAL, fontsize=13)
+        _frame(ax, "validation (Mitsuba 3)")
+    fig.text(0.02, 0.005, f"display: linear / {white:.3g} (target's {WHITE_PERCENTILE} "
+             "percentile), sRGB", fontsize=8, color=NEUTRAL)
+
+    _param_table(fig.add_subplot(grid[2, :3]), result)
+    _facts(fig.add_subplot(grid[2, 3]), result)
+
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fig.savefig(path, format="png")
+    plt.close(fig)
+
+
+def _frame(ax, title: str) -> None:
+    ax.set_title(title, fontsize=12)
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def _headline(ax, result, title: str) -> None:
+    ax.axis("off")
+    ok = result.get("status") == "converged"
+    verdict = "CONVERGED" if ok else f"NOT CONVERGED ({result.get('status')})"
+    ax.text(0.0, 0.5, verdict, color="white", fontsize=17, fontweight="bold", va="center",
+            bbox={"boxstyle": "round,pad=0.4", "facecolor": GOOD if ok else BAD,
+                  "edgecolor": "none"})
+    bits = [title] if title else []
+    v = result.get("validation")
+    if v:
+        bits.append(f"Mitsuba PSNR {_num(v.get('psnr_db'), '.1f')} dB, "
+                    f"ΔE2000 mean {_num(v.get('delta_e2000_mean'), '.2g')}, "
+                    f"max {_num(v.get('delta_e2000_max'), '.2g')}")
+    bits.append(f"image RMSE {_num(result.get('image_rmse'), '.3g')}")
+    ax.text(0.22, 0.5, "   |   ".join(bits), fontsize=13, va="center")
+
+
+def _residual(fig, ax, residual: np.ndarray, exclude) -> None:
+    import matplotlib.pyplot as plt
+
+    res = residual.mean(axis=-1)
+    if exclude is not None and np.any(exclude):
+        res = np.where(exclude, np.nan, res)
+    finite = np.abs(res[np.isfinite(res)])
+    scale = float(np.percentile(finite, RESIDUAL_PERCENTILE)) if finite.size else 0.0
+    scale = scale if scale > 0 else 1e-12
+    cmap = plt.get_cmap("RdBu_r").copy()
+    cmap.set_bad("0.6")
+    im = ax.imshow(res, cmap=cmap, vmin=-scale, vmax=scale, interpolation="nearest")
+    _frame(ax, "residual: target − fit (RGB mean)")
+    bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+    bar.ax.tick_params(labelsize=8)
+    bar.formatter.set_powerlimits((-2, 3))
+
+
+def _param_table(ax, result) -> None:
+    ax.axis("off")
+    truth = result.get("truth_error") or {}
+    stderr = result.get("stderr") or {}
+    unident = set(result.get("unidentifiable") or [])
+    header = ["parameter", "fit ± stderr"] + (["truth", "|fit − truth|", "error / stderr"]
+                                              if truth else [])
+    rows, colours = [], []
+    for key, value in (result.get("params") or {}).items():
+        if key in unident:
+            err = "unidentifiable (held)"
+        elif key in stderr:
+            err = _vec(stderr[key])
+        else:
+            err = "fixed"
+        row = [key, f"{_vec(value)} ± {err}" if key in stderr else f"{_vec(value)} ({err})"]
+        colour = "white"
+        if truth:
+            te = truth.get(key)
+            if te:
+                sig = te.get("sigmas")
+                row += [_vec(te["truth"]), _vec(te["abs"]), _vec(sig) if sig is not None else ""]
+                worst = np.nanmax(np.atleast_1d(np.asarray(sig, dtype=float))) \
+                    if sig is not None and np.any(np.isfinite(np.asarray(sig, dtype=float))) \
+                    else np.nan
+                if np.isfinite(worst):
+                    colour = "#e8f5e9" if worst <= FLAG_SIGMAS else "#ffebee"
+            else:
+                row += ["", "", ""]
+        if key in unident:
+            colour = "#fff8e1"
+        rows.append(row)
+        colours.append([colour] * len(row))
+    if not rows:
+        return
+    table = ax.table(cellText=rows, colLabels=header, cellColours=colours, loc="upper left",
+                     cellLoc="left", colLoc="left")
+    table.auto_set_font_size(False)
+    table.set_fontsize(10)
+    table.scale(1.0, 1.6)
+    table.auto_set_column_width(list(range(len(header))))
+    if truth:
+        ax.set_title(f"green: within {FLAG_SIGMAS:g} stderr of the truth, red: beyond",
+                     fontsize=9, loc="left", color=NEUTRAL)
+
+
+def _facts(ax, result) -> None:
+    ax.axis("off")
+    t = result.get("time_s") or {}
+    lines = [
+        f"status: {result.get('status')}",
+        f"message: {_wrap(str(result.get('message', '')), 44)}",
+        f"solver: {result.get('solver', '?')}, {result.get('iterations')} steps",
+        f"cost: {_num(result.get('cost'), '.4g')}",
+        f"pixels: {result.get('n_pixels', '?')} fitted, {result.get('n_excluded', 0)} excluded",
+        f"time: {_num(t.get('total'), '.2f')} s (compile {_num(t.get('compile'), '.2f')} s, "
+        f"run {_num(t.get('run'), '.2f')} s)",
+    ]
+    v = result.get("validation")
+    if v:
+        lines.append(f"Mitsuba {v.get('spp', '')} spp: RMSE {_num(v.get('rmse'), '.3g')}")
+    for w in (result.get("warnings") or [])[:4]:
+        lines.append("warning: " + _wrap(w, 44))
+    ax.text(0.0, 1.0, "\n".join(lines), va="top", ha="left", fontsize=10, family="monospace")
+
+
+def _wrap(text: str, width: int) -> str:
+    import textwrap
+
+    return "\n  ".join(textwrap.wrap(text, width)) or ""
+
+
+def _num(value, fmt: str) -> str:
+    return "n/a" if value is None else format(value, fmt)
+
+
+def _vec(value) -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_vec(v) for v in value) + "]"
+    return f"{value:.4g}"
