@@ -333,7 +333,7 @@ def cmd_fit(args) -> int:
     if args.solver is not None:
         if args.solver not in solvers():
             raise UsageError(f"--solver {args.solver!r} is not allowed; allowed values: "
-                             + ", ".join(solvers()))
+                             + ", ".join(repr(n) for n in solvers()))
         job = job.replace(fit=job.fit.replace(solver=args.solver))
     if args.validate is not None:
         job = job.replace(fit=job.fit.replace(validate=args.validate))

@@ -119,8 +119,7 @@ def _residual(fig, ax, residual: np.ndarray, exclude) -> None:
     finite = np.abs(res[np.isfinite(res)])
     scale = float(np.percentile(finite, RESIDUAL_PERCENTILE)) if finite.size else 0.0
     scale = scale if scale > 0 else 1e-12
-    cmap = plt.get_cmap("RdBu_r").copy()
-    cmap.set_bad("0.6")
+    cmap = plt.get_cmap("RdBu_r").with_extremes(bad="0.6")
     im = ax.imshow(res, cmap=cmap, vmin=-scale, vmax=scale, interpolation="nearest")
     _frame(ax, "residual: target − fit (RGB mean)")
     bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)

@@ -196,6 +196,7 @@ ERRORS = [
     (("fit", "saturation"), 0, ["fit.saturation", "range"]),
     (("fit", "target"), 7, ["fit.target", "string"]),
     (("fit", "dtype"), "float16", ["fit.dtype", "'float64'", "'float32'"]),
+    (("fit", "mask"), "edges", ["fit.mask", "'interior'", "'active'"]),
     (("fit", "solve"), "lm", ["fit.solve", "unknown key", "solver"]),
 ]
 
