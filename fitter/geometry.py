@@ -15,7 +15,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from .camera import SceneError, camera_rays
+from .bsdf.base import Cosines, cosines
+from .camera import SceneError, camera_rays, film_samples
 from .environment import EnvData, lookup
 from .scene import DirectionalLight, PointLight, Scene
 
@@ -26,25 +27,41 @@ class Geometry(NamedTuple):
     Attributes:
         pixel_index: (P,) int, flat index (row * W + col) of each active pixel.
         hit: (P, K) bool, sample hits the sphere.
+        sample_weight: (K,) quadrature weights of the sub-pixel samples (sum 1).
         position, normal, ray_dir: (P, K, 3) hit point, unit outward normal,
             unit camera ray direction (towards the surface). Samples that
             miss hold a harmless stand-in (normal = -ray_dir).
-        light_dir: (L, P, K, 3) unit direction towards each light.
-        light_irradiance: (L, P, K, 3) RGB irradiance on a surface facing the
-            light (W/m^2; intensity / r^2 for point lights).
-        background: (P, 3) mean over K of what missing samples see (/K).
+        cosines: ``Cosines`` of (light direction, view direction) per light,
+            each (L, P, K); a stand-in normal-incidence pair where unlit.
+        light_weight: (L, P, K) sample weight * cos_i * light fall-off (1/r^2
+            for point lights, 1 for directional), 0 where the sample misses
+            or cos_i <= 0 or cos_o <= 0.
+        light_color: (L, 3) RGB intensity (W/sr) or irradiance (W/m^2).
+        background: (P, 3) weighted sum of what missing samples see.
         background_image: (H*W, 3) the image with no sphere.
     """
 
     pixel_index: np.ndarray
     hit: np.ndarray
+    sample_weight: np.ndarray
     position: np.ndarray
     normal: np.ndarray
     ray_dir: np.ndarray
-    light_dir: np.ndarray
-    light_irradiance: np.ndarray
+    cosines: Cosines
+    light_weight: np.ndarray
+    light_color: np.ndarray
     background: np.ndarray
     background_image: np.ndarray
+
+    def subset(self, rows: np.ndarray) -> "Geometry":
+        """The geometry of the active pixels ``rows`` only."""
+        per_light = lambda a: a[:, rows]  # noqa: E731
+        return self._replace(
+            pixel_index=self.pixel_index[rows], hit=self.hit[rows],
+            position=self.position[rows], normal=self.normal[rows],
+            ray_dir=self.ray_dir[rows],
+            cosines=Cosines(*(per_light(a) for a in self.cosines)),
+            light_weight=per_light(self.light_weight), background=self.background[rows])
 
 
 def intersect_sphere(o, d, center, radius):
@@ -62,25 +79,29 @@ def intersect_sphere(o, d, center, radius):
 
 
 def light_terms(lights, position):
-    """Unit directions to each light and RGB irradiance, each (L, ..., 3)."""
-    dirs, irr = [], []
+    """Unit directions to each light (L, ..., 3), fall-off (L, ...) and colour (L, 3)."""
+    dirs, falloff, color = [], [], []
     for light in lights:
         if isinstance(light, PointLight):
             to = np.asarray(light.position, dtype=np.float64) - position
             r2 = np.einsum("...i,...i->...", to, to)
             dirs.append(to / np.sqrt(r2)[..., None])
-            irr.append(np.asarray(light.intensity, dtype=np.float64) / r2[..., None])
+            falloff.append(1.0 / r2)
+            color.append(light.intensity)
         elif isinstance(light, DirectionalLight):
             v = -np.asarray(light.direction, dtype=np.float64)
-            dirs.append(np.broadcast_to(v / np.linalg.norm(v), position.shape))
-            irr.append(np.broadcast_to(np.asarray(light.irradiance, dtype=np.float64),
-                                       position.shape))
+            n = np.linalg.norm(v)
+            if not n > 0:
+                raise SceneError(f"directional light direction {light.direction} is zero")
+            dirs.append(np.broadcast_to(v / n, position.shape))
+            falloff.append(np.ones(position.shape[:-1]))
+            color.append(light.irradiance)
         else:
             raise SceneError(f"unknown light {light!r}")
-    shape = (0,) + position.shape
     if not dirs:
-        return np.zeros(shape), np.zeros(shape)
-    return np.stack(dirs), np.stack(irr)
+        return (np.zeros((0,) + position.shape), np.zeros((0,) + position.shape[:-1]),
+                np.zeros((0, 3)))
+    return np.stack(dirs), np.stack(falloff), np.asarray(color, dtype=np.float64)
 
 
 def build_geometry(scene: Scene, env_type: str, env: EnvData) -> Geometry:
@@ -96,12 +117,13 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData) -> Geometry:
             if np.linalg.norm(np.subtract(light.position, sph.center)) <= sph.radius:
                 raise SceneError(f"point light at {light.position} lies inside the sphere")
     o, d = camera_rays(scene)
+    _, _, weight = film_samples(scene)
     h, w, k2, _ = d.shape
     t = intersect_sphere(o, d, sph.center, sph.radius)
     hit_all = np.isfinite(t)
 
     miss_rad = np.asarray(lookup(env_type, env, jnp.asarray(d)))  # (H, W, K, 3)
-    background_image = miss_rad.mean(axis=2).reshape(h * w, 3)
+    background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
 
     active = hit_all.any(axis=2).reshape(-1)
     pixel_index = np.nonzero(active)[0]
@@ -113,8 +135,14 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData) -> Geometry:
     normal = (pos - np.asarray(sph.center)) / sph.radius
     normal = np.where(hit[..., None], normal, -d_a)
     pos = np.where(hit[..., None], pos, np.asarray(sph.center) + sph.radius * normal)
-    light_dir, light_irr = light_terms(scene.lights, pos)
     miss_a = miss_rad.reshape(h * w, k2, 3)[pixel_index]
-    background = np.where(hit[..., None], 0.0, miss_a).mean(axis=1)
-    return Geometry(pixel_index, hit, pos, normal, d_a, light_dir, light_irr,
+    background = np.einsum("pkc,k->pc", np.where(hit[..., None], 0.0, miss_a), weight)
+
+    light_dir, falloff, color = light_terms(scene.lights, pos)
+    cos = Cosines(*(np.asarray(a) for a in cosines(normal, light_dir, -d_a)))
+    lit = hit & (cos.cos_i > 0) & (cos.cos_o > 0)
+    stand_in = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
+    cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, stand_in)))
+    light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
+    return Geometry(pixel_index, hit, weight, pos, normal, d_a, cos, light_weight, color,
                     background, background_image)

@@ -14,8 +14,9 @@ so that a scene maps 1:1 onto a Mitsuba scene dict (see
 * image row 0 is the top row; world directions follow ``look_at(origin,
   target, up)``;
 * a pixel's value is the average radiance over the pixel square (Mitsuba's
-  ``box`` reconstruction filter), estimated with ``supersampling**2``
-  stratified sub-pixel samples.
+  ``box`` reconstruction filter), estimated with a ``supersampling`` x
+  ``supersampling`` product rule over the pixel: Gauss-Legendre nodes and
+  weights by default (``pixel_rule = "gauss"``), or the midpoint grid.
 """
 
 from __future__ import annotations
@@ -107,6 +108,7 @@ class Scene:
     sphere: Sphere = Sphere()
     lights: tuple[Light, ...] = ()
     environment: Environment = Environment()
+    pixel_rule: Literal["gauss", "midpoint"] = "gauss"
 
     def replace(self, **changes) -> "Scene":
         return dataclasses.replace(self, **changes)

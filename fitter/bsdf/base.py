@@ -6,11 +6,16 @@ away from the surface. ``wi`` is towards the light, ``wo`` towards the viewer,
 
 A lobe is one of two kinds:
 
-* ``"brdf"``: a finite BRDF f(wi, wo) evaluated under the scene's point and
-  directional lights; ``eval(p, opts, n, wi, wo) -> (..., 3)`` returns f in
-  1/sr, RGB. The renderer multiplies by irradiance and the cosine and sums
-  over lights, so ``eval`` must only be finite where cos_i <= 0 or
-  cos_o <= 0; the renderer masks those pairs out.
+* ``"brdf"``: a finite BRDF evaluated under the scene's point and
+  directional lights, written as f = scale * shape: ``scale`` names the
+  lobe's reflectance parameter (RGB or scalar) and ``shape(p, opts, c) ->
+  (...)`` the colourless angular part, a function of the ``Cosines`` of the
+  direction pair only (every lecture BRDF is isotropic). The split lets the
+  renderer average shape * irradiance over sub-pixel samples once and apply
+  the reflectance per pixel, and lets the cosines be tabulated once per
+  scene. ``Lobe.eval(p, opts, n, wi, wo) -> (..., 3)`` gives f itself.
+  ``shape`` must stay finite, with finite gradients, for any directions,
+  including cos_i or cos_o <= 0 (the renderer weights those pairs by 0).
 * ``"specular"``: a delta lobe (mirror, smooth dielectric) that only sees the
   environment; ``radiance(p, opts, hit, env) -> (..., 3)`` returns the
   outgoing radiance towards the camera (``hit``: a ``SurfaceHit``; ``env``: a
@@ -24,6 +29,10 @@ from __future__ import annotations
 
 import dataclasses
 from typing import Any, Callable, Literal, NamedTuple
+
+import jax.numpy as jnp
+
+from .._math import dot, safe_div
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +75,36 @@ class Option:
     doc: str = ""
 
 
+class Cosines(NamedTuple):
+    """Cosines of a direction pair (wi, wo) about the normal n, arrays (...).
+
+    With H = wi + wo and h = H / |H| the half vector: cos_h = n.h,
+    cos_d = wo.h (= wi.h) and tan2_h = tan^2 of the angle between n and h,
+    taken as |n x H|^2 / (n.H)^2 (accurate near 0, unlike 1/cos^2 - 1).
+    Where n.H <= 0 or H = 0, cos_h = cos_d = tan2_h = 0.
+    """
+
+    cos_i: Any
+    cos_o: Any
+    cos_io: Any  # wi . wo
+    cos_h: Any
+    cos_d: Any
+    tan2_h: Any
+
+
+def cosines(n, wi, wo) -> Cosines:
+    """``Cosines`` of unit vectors (..., 3) (JAX; also accepts NumPy arrays)."""
+    ci, co = dot(n, wi), dot(n, wo)
+    h = wi + wo
+    hh = dot(h, h)
+    nh = dot(n, h)
+    up = (nh > 0) & (hh > 0)
+    inv = jnp.where(up, 1.0 / jnp.sqrt(jnp.where(up, hh, 1.0)), 0.0)
+    cr = jnp.cross(n, h)
+    tan2 = safe_div(dot(cr, cr), nh * nh, up)
+    return Cosines(ci, co, dot(wi, wo), nh * inv, dot(wo, h) * inv, tan2)
+
+
 class SurfaceHit(NamedTuple):
     """Where camera rays meet the sphere; arrays of shape (..., 3)."""
 
@@ -82,11 +121,18 @@ class Lobe:
     kind: Literal["brdf", "specular"]
     params: tuple[Param, ...]
     options: tuple[Option, ...] = ()
-    eval: Callable | None = None
+    scale: str | None = None
+    shape: Callable | None = None
     radiance: Callable | None = None
     doc: str = ""
     #: ``mitsuba(p, opts) -> dict``: the equivalent Mitsuba 3 BSDF dict (see ``fitter.mitsuba``).
     mitsuba: Callable | None = None
+
+    def eval(self, p, opts, n, wi, wo):
+        """BRDF value f(wi, wo) in 1/sr, RGB (..., 3), for a ``brdf`` lobe."""
+        g = self.shape(p, opts, cosines(n, wi, wo))
+        scale = jnp.asarray(p[self.scale])
+        return jnp.reshape(scale, (1,) * g.ndim + (-1,)) * g[..., None] * jnp.ones(3)
 
     def param(self, name: str) -> Param:
         for p in self.params:

@@ -8,8 +8,8 @@ import jax.numpy as jnp
 from .base import Lobe, Param
 
 
-def _eval(p, opts, n, wi, wo):
-    return jnp.broadcast_to(p["rho_d"] / jnp.pi, n.shape)
+def _shape(p, opts, c):
+    return jnp.full_like(c.cos_i, 1.0 / jnp.pi)
 
 
 def _mitsuba(p, opts):
@@ -23,7 +23,8 @@ LOBE = Lobe(
     params=(
         Param("rho_d", 3, 0.5, 0.0, 1.0, "logit", "diffuse (bihemispherical) reflectance, RGB"),
     ),
-    eval=_eval,
+    scale="rho_d",
+    shape=_shape,
     doc="Lambert: f = rho_d / pi.",
     mitsuba=_mitsuba,
 )

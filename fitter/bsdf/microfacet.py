@@ -17,31 +17,30 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .._math import dot, safe_div, safe_sqrt
+from .._math import safe_div, safe_sqrt
 
 #: Smallest roughness evaluated (Mitsuba clamps alpha the same way).
 M_MIN = 1e-4
 
 
-def beckmann_d_lecture(n, h_unnorm, m):
+def beckmann_d_lecture(cos_h, tan2_h, m):
     """The lecture's Beckmann D = exp(-tan^2(beta)/m^2) / (4 m^2 cos^4(beta)).
 
-    ``h_unnorm`` = wi + wo need not be normalised: tan^2(beta) is taken as
-    |n x H|^2 / (n . H)^2, which stays accurate near beta = 0 (the 1 - cos^2
-    form cancels catastrophically there). This D is pi/4 times the
-    normalised Beckmann D_n = exp(-tan^2/m^2) / (pi m^2 cos^4), so the
-    lecture's D G F / (pi cos_i cos_o) equals D_n G F / (4 cos_i cos_o).
-    Zero where n . H <= 0.
+    Args:
+        cos_h: cos(beta) = n.h, (...); D = 0 where cos_h <= 0.
+        tan2_h: tan^2(beta), (...), best computed as |n x H|^2 / (n.H)^2
+            (``fitter.bsdf.base.cosines``), which is accurate near beta = 0.
+        m: roughness, clamped to ``M_MIN``.
+
+    This D is pi/4 times the normalised Beckmann D_n = exp(-tan^2/m^2) /
+    (pi m^2 cos^4), so the lecture's D G F / (pi cos_i cos_o) equals
+    D_n G F / (4 cos_i cos_o).
     """
     m = jnp.maximum(m, M_MIN)
-    nh = dot(n, h_unnorm)
-    hh = dot(h_unnorm, h_unnorm)
-    up = nh > 0
-    cross = jnp.cross(n, h_unnorm)
-    tan2 = safe_div(dot(cross, cross), nh * nh, up)
-    cos4 = safe_div(nh**4, hh * hh, up)
+    up = cos_h > 0
     m2 = m * m
-    return jnp.where(up, jnp.exp(-tan2 / m2) * safe_div(1.0, 4.0 * m2 * cos4, up), 0.0)
+    cos4 = cos_h**4
+    return jnp.where(up, jnp.exp(-tan2_h / m2) * safe_div(1.0, 4.0 * m2 * cos4, up), 0.0)
 
 
 def g_v_groove(cos_h, cos_i, cos_o, wo_h):

@@ -22,7 +22,7 @@ References:
 
 import jax.numpy as jnp
 
-from .._math import dot, safe_div
+from .._math import safe_div
 from .base import Lobe, Param
 
 
@@ -32,12 +32,11 @@ def coefficients(sigma):
     return 1.0 - s2 / (2.0 * (s2 + 0.33)), 0.45 * s2 / (s2 + 0.09)
 
 
-def _eval(p, opts, n, wi, wo):
-    ci, co = dot(n, wi), dot(n, wo)
+def _shape(p, opts, c):
     a, b = coefficients(p["sigma"])
-    cmax = jnp.maximum(ci, co)
-    term = safe_div(jnp.maximum(dot(wi, wo) - ci * co, 0.0), cmax, cmax > 0)
-    return p["rho_d"] / jnp.pi * (a + b * term)[..., None]
+    cmax = jnp.maximum(c.cos_i, c.cos_o)
+    term = safe_div(jnp.maximum(c.cos_io - c.cos_i * c.cos_o, 0.0), cmax, cmax > 0)
+    return (a + b * term) / jnp.pi
 
 
 def _mitsuba(p, opts):
@@ -54,7 +53,8 @@ LOBE = Lobe(
         Param("sigma", 1, 0.3, 0.0, 1.5, "box",
               "std-dev of facet slope angle, radians (lecture: sigma^2 <= 1)"),
     ),
-    eval=_eval,
+    scale="rho_d",
+    shape=_shape,
     doc="Oren-Nayar (qualitative A/B form); sigma = 0 is Lambert.",
     mitsuba=_mitsuba,
 )

@@ -15,17 +15,17 @@ Reference: Teschner, *Materials 2*, "Example - glossy / specular reflection".
 
 import jax.numpy as jnp
 
-from .._math import dot, safe_pow
+from .._math import safe_pow
 from .base import Lobe, Option, Param
 
 
-def _eval(p, opts, n, wi, wo):
-    cos_alpha = 2.0 * dot(n, wi) * dot(n, wo) - dot(wi, wo)
+def _shape(p, opts, c):
+    cos_alpha = 2.0 * c.cos_i * c.cos_o - c.cos_io
     e = p["e"]
     lobe = safe_pow(cos_alpha, e)
     if opts["normalized"]:
         lobe = lobe * (e + 2.0) / (2.0 * jnp.pi)
-    return p["rho_s"] * lobe[..., None]
+    return lobe
 
 
 def _mitsuba(p, opts):
@@ -42,7 +42,8 @@ LOBE = Lobe(
         Param("e", 1, 20.0, 1.0, 1e4, "log", "specular exponent"),
     ),
     options=(Option("normalized", (False, True), False, "scale by (e + 2) / (2 pi)"),),
-    eval=_eval,
+    scale="rho_s",
+    shape=_shape,
     doc="Phong lobe rho_s cos^e(alpha), optionally energy-normalised.",
     mitsuba=_mitsuba,
 )

@@ -19,29 +19,22 @@ References:
 
 import jax.numpy as jnp
 
-from .._math import dot, safe_div
+from .._math import safe_div
 from .base import Lobe, Option, Param
 from .fresnel import fresnel_dielectric
 from .microfacet import beckmann_d_lecture, g_smith, g_v_groove
 
 
-def _eval(p, opts, n, wi, wo):
-    ci, co = dot(n, wi), dot(n, wo)
-    h_un = wi + wo
-    h_len2 = dot(h_un, h_un)
-    ok = (h_len2 > 0) & (ci > 0) & (co > 0)
-    inv_len = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, h_len2, 1.0)), 0.0)
-    cos_h = dot(n, h_un) * inv_len
-    wo_h = dot(wo, h_un) * inv_len
-    m = p["m"]
-    d = beckmann_d_lecture(n, h_un, m)
+def _shape(p, opts, c):
+    ci, co, m = c.cos_i, c.cos_o, p["m"]
+    ok = (ci > 0) & (co > 0)
+    d = beckmann_d_lecture(c.cos_h, c.tan2_h, m)
     if opts["geometry"] == "smith":
         g = g_smith(ci, co, m)
     else:
-        g = g_v_groove(cos_h, ci, co, wo_h)
-    f = fresnel_dielectric(jnp.clip(wo_h, 0.0, 1.0), p["eta"])
-    value = safe_div(d * g * f, jnp.pi * ci * co, ok)
-    return p["rho_s"] * value[..., None]
+        g = g_v_groove(c.cos_h, ci, co, c.cos_d)
+    f = fresnel_dielectric(jnp.clip(c.cos_d, 0.0, 1.0), p["eta"])
+    return safe_div(d * g * f, jnp.pi * ci * co, ok)
 
 
 def _mitsuba(p, opts):
@@ -66,7 +59,8 @@ LOBE = Lobe(
     ),
     options=(Option("geometry", ("v_groove", "smith"), "v_groove",
                     "shadowing-masking term G"),),
-    eval=_eval,
+    scale="rho_s",
+    shape=_shape,
     doc="Torrance-Sparrow: D G F / (pi cos_i cos_o), Beckmann D.",
     mitsuba=_mitsuba,
 )

@@ -7,6 +7,7 @@ re-check identifiability at the solution -> covariance -> FitResult.
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any, Mapping
 
@@ -16,9 +17,8 @@ import numpy as np
 import optimistix as optx
 
 from .. import transforms
-from ..geometry import Geometry
 from ..material import Material, MaterialError
-from ..render import Renderer
+from ..render import Renderer, _renderer
 from ..scene import Scene
 from ._problem import LOSSES, Block, Data, Spec, params_from_z, residuals, z_from_params
 from ._solvers import SOLVERS, make_solver
@@ -87,15 +87,6 @@ def _compiled(kind, spec, args, **static):
 
 def _as_material(material) -> Material:
     return material if isinstance(material, Material) else Material.make(material)
-
-
-def _subset(geo: Geometry, rows: np.ndarray) -> Geometry:
-    pick = lambda a: a[rows]  # noqa: E731
-    return geo._replace(
-        pixel_index=pick(geo.pixel_index), hit=pick(geo.hit), position=pick(geo.position),
-        normal=pick(geo.normal), ray_dir=pick(geo.ray_dir),
-        light_dir=geo.light_dir[:, rows], light_irradiance=geo.light_irradiance[:, rows],
-        background=pick(geo.background))
 
 
 def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
@@ -215,7 +206,8 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     fixed_keys = set(numeric_fixed) | {k for k, s in material.param_specs().items()
                                        if not s.free and k not in numeric_init}
 
-    renderer = Renderer(scene, material, dtype, base_dir)
+    renderer = _renderer(scene, material, jnp.dtype(dtype),
+                         os.path.abspath(base_dir) if base_dir else None)
     rows, n_dropped, flat_target = select_pixels(renderer, target, mask, exclude, saturation)
     if rows.size == 0:
         raise FitError("no pixels to fit: the mask selects none, or every selected pixel "
@@ -234,7 +226,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
 
     blocks, fixed_values = _blocks(material, init_full, fixed_keys, bounds)
     cast = lambda a: jnp.asarray(a, dtype=dtype)  # noqa: E731
-    data = Data(_subset(renderer.geometry, rows), renderer.env, renderer.sphere,
+    data = Data(renderer.geometry.subset(rows), renderer.env, renderer.sphere,
                 cast(flat_target[rows]), cast(w), {})
     warnings: list[str] = []
     unidentifiable: list[str] = []
