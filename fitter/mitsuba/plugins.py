@@ -51,7 +51,7 @@ def _classes(mi):
     import drjit as dr
 
     def rgb(props, name, default):
-        if props.has_property(name):
+        if name in props:
             v = props[name]  # a float, a colour, or a texture
             if isinstance(v, (int, float)):
                 return mi.Color3f(float(v))

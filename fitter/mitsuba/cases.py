@@ -1,0 +1,113 @@
+"""The shipped synthetic cases (``data_synthetic/<name>/``) as plain data.
+
+Each entry of ``CASES`` is a dict in the TOML config layout of
+``fitter.config`` (``scene``, ``material`` with ``lobes``, ``truth`` and
+``fixed`` -- lobe options go in ``fixed`` --, ``synth``), so
+``fitter.config.job_from_dict(CASES[name], base_dir=<case folder>)`` builds
+the job and a ``configs/<name>.toml`` can be written from it. Relative paths
+(the envmap) are relative to the case folder. ``NOTES`` says what each case
+is for. ``fitter.mitsuba.synth.generate_all(root)`` renders them all.
+
+Opaque-lobe cases use a black environment: Mitsuba's environment emitters
+would light those lobes, the project's model does not (see ``translate``).
+"""
+
+from __future__ import annotations
+
+import copy
+
+#: Default frame: 128 x 128, 4 x 4 supersampling, the quickstart camera.
+_CAMERA = {"type": "perspective", "origin": [0.0, 0.0, 4.0], "target": [0.0, 0.0, 0.0],
+           "up": [0.0, 1.0, 0.0], "fov": 35.0}
+_TWO_LIGHTS = [
+    {"type": "point", "position": [3.0, 4.0, 5.0], "intensity": [50.0, 50.0, 50.0]},
+    {"type": "point", "position": [-4.0, 1.0, 3.0], "intensity": [20.0, 20.0, 30.0]},
+]
+_BLACK = {"type": "black"}
+#: The procedural envmap ``synth.make_envmap`` writes at ``data_synthetic/envmap.exr``.
+ENVMAP = "envmap.exr"
+_ENVMAP = {"type": "envmap", "file": "../" + ENVMAP, "scale": 1.0}
+
+#: Samples per pixel: direct lighting converges fast (interior relative noise
+#: ~6e-5 at 1024 spp); the absorbing dielectric's volume sampling is noisier.
+SPP_OPAQUE = 1024
+SPP_MIRROR = 1024
+SPP_DIELECTRIC = 4096
+
+
+def _case(lobes, truth, *, fixed=None, lights=_TWO_LIGHTS, environment=_BLACK,
+          spp=SPP_OPAQUE, seed=0):
+    material = {"lobes": list(lobes), "truth": truth}
+    if fixed:
+        material["fixed"] = fixed
+    return {
+        "scene": {"width": 128, "height": 128, "supersampling": 4, "camera": dict(_CAMERA),
+                  "sphere": {"center": [0.0, 0.0, 0.0], "radius": 1.0},
+                  "lights": copy.deepcopy(list(lights)), "environment": dict(environment)},
+        "material": material,
+        "synth": {"spp": spp, "seed": seed},
+    }
+
+
+_SMITH = {"torrance_sparrow.geometry": "smith"}
+_VGROOVE = {"torrance_sparrow.geometry": "v_groove"}
+_GRAZING = [{"type": "point", "position": [5.0, 0.5, 0.0], "intensity": [60.0, 60.0, 60.0]},
+            {"type": "point", "position": [-4.0, 1.0, 3.0], "intensity": [20.0, 20.0, 30.0]}]
+
+CASES: dict[str, dict] = {
+    "lambert": _case(["lambert"], {"lambert.rho_d": [0.6, 0.4, 0.2]}),
+    "oren_nayar": _case(["oren_nayar"], {"oren_nayar.rho_d": [0.5, 0.45, 0.4],
+                                         "oren_nayar.sigma": 0.4}),
+    "phong": _case(["phong"], {"phong.rho_s": [0.3, 0.3, 0.3], "phong.e": 50.0}),
+    "torrance_sparrow": _case(["torrance_sparrow"], {"torrance_sparrow.m": 0.2,
+                                                     "torrance_sparrow.eta": 1.6}, fixed=_SMITH),
+    "mirror": _case(["mirror"], {"mirror.rho_m": [0.9, 0.85, 0.8]}, lights=[],
+                    environment=_ENVMAP, spp=SPP_MIRROR),
+    "plastic": _case(["lambert", "torrance_sparrow"],
+                     {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.15,
+                      "torrance_sparrow.eta": 1.5}, fixed=_SMITH),
+    "plastic_vgroove": _case(["lambert", "torrance_sparrow"],
+                             {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.15,
+                              "torrance_sparrow.eta": 1.5}, fixed=_VGROOVE),
+    "oren_nayar_phong": _case(["oren_nayar", "phong"],
+                              {"oren_nayar.rho_d": [0.3, 0.5, 0.6], "oren_nayar.sigma": 0.3,
+                               "phong.rho_s": [0.2, 0.2, 0.2], "phong.e": 100.0},
+                              fixed={"phong.normalized": True}),
+    "dielectric": _case(["dielectric"], {"dielectric.eta": 1.5,
+                                         "dielectric.attenuation": [0.9, 0.7, 0.5]},
+                        lights=[], environment=_ENVMAP, spp=SPP_DIELECTRIC),
+    "extreme_sharp_ts": _case(["lambert", "torrance_sparrow"],
+                              {"lambert.rho_d": [0.5, 0.5, 0.5], "torrance_sparrow.m": 0.02,
+                               "torrance_sparrow.eta": 1.5}, fixed=_SMITH),
+    "extreme_sharp_phong": _case(["lambert", "phong"],
+                                 {"lambert.rho_d": [0.4, 0.4, 0.5], "phong.rho_s": [0.5, 0.5, 0.5],
+                                  "phong.e": 2000.0}),
+    "extreme_low_eta": _case(["lambert", "torrance_sparrow"],
+                             {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.15,
+                              "torrance_sparrow.eta": 1.02}, fixed=_SMITH),
+    "extreme_sigma0": _case(["oren_nayar"], {"oren_nayar.rho_d": [0.5, 0.45, 0.4],
+                                             "oren_nayar.sigma": 0.0}),
+    "extreme_grazing": _case(["lambert", "torrance_sparrow"],
+                             {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.3,
+                              "torrance_sparrow.eta": 1.5}, fixed=_VGROOVE, lights=_GRAZING),
+}
+
+NOTES: dict[str, str] = {
+    "lambert": "Lambert alone, two point lights (Mitsuba diffuse).",
+    "oren_nayar": "Oren-Nayar alone, sigma = 0.4 (Python plugin fitter_oren_nayar).",
+    "phong": "Un-normalised Phong alone, e = 50 (Python plugin fitter_phong).",
+    "torrance_sparrow": "Torrance-Sparrow alone, Smith G (Mitsuba roughconductor, k = 0).",
+    "mirror": "Perfect mirror in the procedural envmap (conductor, material none; path).",
+    "plastic": "The quickstart case: lambert + torrance_sparrow (Smith G), two point lights.",
+    "plastic_vgroove": "The quickstart material with the lecture's V-groove G (Python plugin).",
+    "oren_nayar_phong": "Oren-Nayar + normalised Phong, summed by fitter_sum.",
+    "dielectric": "Smooth dielectric sphere with Beer-Lambert attenuation in the envmap "
+                  "(dielectric + homogeneous medium; volpathmis).",
+    "extreme_sharp_ts": "Very sharp highlight, m = 0.02 (about a pixel wide).",
+    "extreme_sharp_phong": "Very sharp Phong highlight, e = 2000.",
+    "extreme_low_eta": "eta = 1.02: the specular lobe is ~1e-4 of the diffuse; m, eta barely "
+                       "identifiable.",
+    "extreme_sigma0": "Oren-Nayar at sigma = 0, the edge of its box (equals Lambert).",
+    "extreme_grazing": "Light at 90 degrees to the view: half-lit sphere, highlight near "
+                       "the limb (V-groove G at grazing angles).",
+}

@@ -1,0 +1,134 @@
+"""Synthetic targets rendered by Mitsuba 3: one folder per case.
+
+``write_case`` writes ``target.exr`` (float32 linear RGB), ``preview.png``
+(sRGB) and ``case.json`` (scene, material, truth, Mitsuba settings), each
+atomically; the same Mitsuba version, variant, spp and seed give the same
+bytes. ``generate_all(root)`` renders every case of ``fitter.mitsuba.cases``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import numpy as np
+
+from ..imageio import _atomic_write, write_image
+from ..material import Material
+from ..scene import Scene
+
+
+def _plain(v):
+    if isinstance(v, (str, bool)) or v is None:
+        return v
+    a = np.asarray(v)
+    if a.dtype.kind in "fi":
+        a = a.astype(np.float64)
+        return float(a) if a.ndim == 0 else [float(x) for x in a.reshape(-1)]
+    return v
+
+
+def make_envmap(path: str, width: int = 64, height: int = 32) -> None:
+    """Write a small asymmetric latitude-longitude EXR (Mitsuba's envmap mapping).
+
+    A blue-to-white sky over a brown ground, a warm "sun" blob at azimuth
+    u = 0.3, elevation 35 deg, and a green panel at u = 0.75: every direction
+    reads differently, so a flipped or rotated mapping shows. Linear RGB.
+    """
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    u = (u + 0.5) / width
+    theta = v / (height - 1) * np.pi  # 0 = up (+y)
+    elev = np.pi / 2 - theta
+    sky = np.where(elev[..., None] > 0,
+                   np.stack([0.3 + 0.5 * np.cos(elev), 0.5 + 0.4 * np.cos(elev),
+                             np.full_like(elev, 1.0)], -1),
+                   np.stack([0.25 + 0.1 * u, 0.18 + 0.0 * u, 0.1 + 0.0 * u], -1))
+    sun_u, sun_e = 0.3, np.radians(35.0)
+    d_ang = np.hypot((u - sun_u) * 2 * np.pi * np.cos(elev), elev - sun_e)
+    sky = sky + np.array([6.0, 4.5, 3.0]) * np.exp(-(d_ang / 0.15) ** 2)[..., None]
+    panel = (np.abs(u - 0.75) < 0.08) & (np.abs(elev - 0.1) < 0.35)
+    sky = np.where(panel[..., None], np.array([0.1, 0.9, 0.2]), sky)
+    write_image(path, sky)
+
+
+def _env_for_json(scene: Scene, out_dir: str, base_dir: str | None) -> Scene:
+    env = scene.environment
+    if env.type != "envmap":
+        return scene
+    path = env.file
+    if base_dir is not None and not os.path.isabs(path):
+        path = os.path.join(base_dir, path)
+    rel = os.path.relpath(os.path.abspath(path), os.path.abspath(out_dir))
+    return scene.replace(environment=env.__class__(type="envmap", file=rel, scale=env.scale))
+
+
+def write_case(out_dir: str, scene: Scene, material: Material, params, *, spp: int, seed: int,
+               variant: str | None = None, base_dir: str | None = None,
+               extra: dict | None = None) -> dict:
+    """Render the case with Mitsuba and write it to ``out_dir``; returns the case dict.
+
+    ``case.json`` holds ``scene`` and ``material`` in the config layout
+    (``fitter.config.scene_to_dict`` / ``material_to_dict``; an envmap path
+    relative to ``out_dir``), the full true parameters (``truth``, defaults
+    included), ``mitsuba`` (version, variant, spp, seed, integrator,
+    sampler) and ``extra``. Render time is returned, not written, so the
+    files are reproducible.
+    """
+    from .. import config
+    from . import render
+    from ._variant import load
+    from .translate import integrator_dict, stratified_spp
+
+    truth = {k: _plain(v) for k, v in material.full_params(params).items()}
+    t0 = time.perf_counter()
+    img = render(scene, material, params, spp=spp, seed=seed, variant=variant, base_dir=base_dir)
+    seconds = time.perf_counter() - t0
+    mi, used = load(variant)
+    case = {
+        "scene": config.scene_to_dict(_env_for_json(scene, out_dir, base_dir)),
+        "material": config.material_to_dict(material, truth=truth),
+        "truth": truth,
+        "mitsuba": {"version": mi.__version__, "variant": used, "spp": stratified_spp(spp),
+                    "seed": int(seed), "sampler": "stratified", "rfilter": "box",
+                    "integrator": integrator_dict(material)},
+        **(extra or {}),
+    }
+    os.makedirs(out_dir, exist_ok=True)
+    write_image(os.path.join(out_dir, "target.exr"), img)
+    write_image(os.path.join(out_dir, "preview.png"), img)
+    text = json.dumps(case, indent=2, sort_keys=True) + "\n"
+
+    def _write(tmp):
+        with open(tmp, "w") as fh:
+            fh.write(text)
+
+    _atomic_write(os.path.join(out_dir, "case.json"), _write)
+    case["render_time_s"] = seconds
+    return case
+
+
+def generate_all(root: str, names=None, *, variant: str | None = None, log=print) -> dict:
+    """Regenerate ``root/envmap.exr`` and every case (or ``names``) under ``root``.
+
+    Returns ``{name: render seconds}``.
+    """
+    from .. import config
+    from .cases import CASES, ENVMAP, NOTES
+
+    os.makedirs(root, exist_ok=True)
+    make_envmap(os.path.join(root, ENVMAP))
+    times = {}
+    for name in names or CASES:
+        spec = CASES[name]
+        out_dir = os.path.join(root, name)
+        os.makedirs(out_dir, exist_ok=True)
+        job = config.job_from_dict(spec, f"<case {name}>", base_dir=out_dir)
+        params = dict(job.truth)
+        case = write_case(out_dir, job.scene, job.material, params, spp=job.synth.spp,
+                          seed=job.synth.seed, variant=variant,
+                          extra={"name": name, "description": NOTES[name]})
+        times[name] = case["render_time_s"]
+        if log:
+            log(f"{name:22s} {case['render_time_s']:6.2f} s  spp {case['mitsuba']['spp']}")
+    return times
