@@ -364,7 +364,8 @@ def cmd_fit(args) -> int:
             with open(os.path.join(tmp, "config.toml"), "w", encoding="utf-8") as fh:
                 fh.write(dumps_toml(job_to_dict(job)))
             make_report(os.path.join(tmp, "report.png"), target=target, fit=fit_img,
-                        validation=validation_img, result=result, exclude=saturated,
+                        validation=validation_img, result=result,
+                        fitted=fitted_pixels(job, target, saturated),
                         title=f"{job.name}: {' + '.join(job.material.lobes)}")
     if args.json:
         print(json.dumps(result, indent=2, allow_nan=False))
@@ -396,6 +397,19 @@ def run_fit(job: Job, target: np.ndarray, saturated: np.ndarray, log: _Log) -> d
     return result
 
 
+def fitted_pixels(job: Job, target: np.ndarray, saturated: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels the fit engine uses for this job and target."""
+    from .fit import select_pixels
+    from .render import Renderer
+
+    renderer = Renderer(job.scene, job.material, base_dir=job.base_dir)
+    rows, _, _ = select_pixels(renderer, target, job.fit.mask,
+                               saturated if saturated.any() else None, job.fit.saturation)
+    mask = np.zeros(job.scene.height * job.scene.width, dtype=bool)
+    mask[np.asarray(renderer.pixel_index)[rows]] = True
+    return mask.reshape(job.scene.height, job.scene.width)
+
+
 def _render_fit(job: Job, params: Mapping[str, Any], log: _Log) -> np.ndarray:
     from .render import render
 
@@ -423,7 +437,7 @@ def _print_summary(log: _Log, result: dict, out: str) -> None:
     ok = result["status"] == "converged"
     table = Table(title=f"[{'green' if ok else 'red'}]{result['status']}[/] "
                         f"after {result['iterations']} steps -- {result.get('message', '')}")
-    table.add_column("parameter")
+    table.add_column("parameter", no_wrap=True)
     table.add_column("fit")
     table.add_column("± stderr")
     has_truth = "truth_error" in result
@@ -431,16 +445,16 @@ def _print_summary(log: _Log, result: dict, out: str) -> None:
         table.add_column("truth")
         table.add_column("|error|")
     for key, value in result["params"].items():
-        row = [key, _fmt(value), _fmt(result["stderr"].get(key))]
+        row = [key, _fmt(value), _fmt(result["stderr"].get(key), ".2g")]
         if key in result.get("unidentifiable", []):
             row[2] = "unidentifiable"
         if has_truth:
             te = result["truth_error"].get(key)
-            row += [_fmt(te["truth"]), _fmt(te["abs"])] if te else ["", ""]
+            row += [_fmt(te["truth"]), _fmt(te["abs"], ".2g")] if te else ["", ""]
         table.add_row(*row)
     from rich.console import Console
 
-    console = Console(highlight=False)
+    console = Console(highlight=False, width=max(Console().width, 110))
     console.print(table)
     line = f"image RMSE {result['image_rmse']:.4g}"
     if "validation" in result:
@@ -453,12 +467,12 @@ def _print_summary(log: _Log, result: dict, out: str) -> None:
     console.print(f"outputs in {out}")
 
 
-def _fmt(value) -> str:
+def _fmt(value, spec: str = ".5g") -> str:
     if value is None:
         return ""
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_fmt(v) for v in value) + "]"
-    return f"{value:.5g}"
+        return "[" + ", ".join(_fmt(v, spec) for v in value) + "]"
+    return format(value, spec)
 
 
 def cmd_synth(args) -> int:

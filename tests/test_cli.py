@@ -27,10 +27,10 @@ RHO_D_ABS, M_REL, ETA_ABS = 0.005, 0.02, 0.005
 #: A forward-model target is reproduced exactly, so the fit must recover the
 #: truth to the solver's tolerance (rtol 1e-8 in the engine), not to a noise level.
 SELF_FIT_ABS = 1e-6
-#: 8-bit sRGB quantisation: half a code value is at most 1/510 in sRGB, which
-#: is below 1.6e-3 in linear radiance for values under 1; the fitted
-#: parameters may move by a few times that.
-SRGB8_ABS = 0.01
+#: 8-bit sRGB quantisation: half a code value (1/510 in sRGB) is at most
+#: 1.6e-3 in linear radiance below 1; a bias of that size in every pixel
+#: bounds the parameter errors (measured: 1.5e-4 in rho_d, 5e-4 in m).
+SRGB8_ABS = 2e-3
 
 SMALL = {
     "scene": {
@@ -271,16 +271,11 @@ def test_bench_without_a_bench_module_says_so(capsys):
 
 
 @pytest.mark.mitsuba
-def test_quickstart_end_to_end_synth_fit_validate(tmp_path, capsys):
-    """The shipped quickstart: Mitsuba target -> fit -> Mitsuba validation -> report."""
+def test_quickstart_end_to_end_fit_validate_report(tmp_path, capsys):
+    """The shipped quickstart on its shipped Mitsuba target: fit -> validation -> report."""
     cfg = os.path.join(CONFIGS, "quickstart.toml")
-    data = tmp_path / "data"
-    code, _, err = _run(capsys, "synth", cfg, "--out", data, "--quiet")
-    assert code == 0, err
-    assert {"target.exr", "case.json"} <= set(os.listdir(data))
     out = tmp_path / "res"
-    code, stdout, err = _run(capsys, "fit", cfg, "--target", data / "target.exr", "--out", out,
-                             "--json", "--quiet")
+    code, stdout, err = _run(capsys, "fit", cfg, "--out", out, "--json", "--quiet")
     assert code == 0, err
     result = json.loads(stdout)
     assert result["status"] == "converged"
@@ -294,7 +289,26 @@ def test_quickstart_end_to_end_synth_fit_validate(tmp_path, capsys):
         assert np.isfinite(v[key])
     assert {"report.png", "validation.exr", "fit.exr", "residual.exr", "result.json"} <= set(
         os.listdir(out))
-    code, stdout, err = _run(capsys, "validate", cfg, out / "result.json", "--target",
-                             data / "target.exr", "--json", "--quiet")
+    code, stdout, err = _run(capsys, "validate", cfg, out / "result.json", "--json", "--quiet")
     assert code == 0, err
+    # same spp and seed: the same Mitsuba image, the same comparison
     assert json.loads(stdout)["psnr_db"] == pytest.approx(v["psnr_db"])
+
+
+@pytest.mark.mitsuba
+def test_synth_writes_a_target_the_fit_recovers(small, tmp_path, capsys):
+    data = tmp_path / "data"
+    code, _, err = _run(capsys, "synth", small, "--out", data, "--spp", 64, "--quiet")
+    assert code == 0, err
+    assert {"target.exr", "preview.png", "case.json"} <= set(os.listdir(data))
+    with open(data / "case.json") as fh:
+        case = json.load(fh)
+    job = load_config(small)
+    assert case["scene"] == json.loads(json.dumps(job_to_dict(job)["scene"]))
+    code, stdout, err = _run(capsys, "fit", small, "--target", data / "target.exr", "--out",
+                             tmp_path / "res", "--json", "--quiet", "--no-validate")
+    assert code == 0, err
+    te = json.loads(stdout)["truth_error"]
+    assert max(te["lambert.rho_d"]["abs"]) < RHO_D_ABS
+    assert te["torrance_sparrow.m"]["rel"] < M_REL
+    assert te["torrance_sparrow.eta"]["abs"] < ETA_ABS
