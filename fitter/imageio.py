@@ -103,8 +103,12 @@ def _umask() -> int:
     return mask
 
 
-def write_image(path: str, image: np.ndarray) -> None:
-    """Write linear RGB (H, W, 3): float32 EXR/HDR as is, 8-bit formats sRGB-encoded."""
+def write_image(path: str, image: np.ndarray, attributes: dict | None = None) -> None:
+    """Write linear RGB (H, W, 3): float32 EXR/HDR as is, 8-bit formats sRGB-encoded.
+
+    ``attributes`` are extra metadata (e.g. a fixed ``"DateTime"`` for
+    bit-for-bit reproducible files; OpenImageIO otherwise stamps the time).
+    """
     import OpenImageIO as oiio
 
     image = np.asarray(image, dtype=np.float64)
@@ -120,6 +124,8 @@ def write_image(path: str, image: np.ndarray) -> None:
         if out is None:
             raise ImageError(f"{path}: no writer for this format ({oiio.geterror().strip()})")
         spec = oiio.ImageSpec(data.shape[1], data.shape[0], data.shape[2], fmt)
+        for key, value in (attributes or {}).items():
+            spec.attribute(key, value)
         if not out.open(tmp, spec) or not out.write_image(data):
             msg = out.geterror()
             out.close()

@@ -19,6 +19,10 @@ from ..material import Material
 from ..scene import Scene
 
 
+#: A fixed file time stamp: OpenImageIO otherwise writes the current time.
+_FIXED_STAMP = {"DateTime": "2000:01:01 00:00:00"}
+
+
 def _plain(v):
     if isinstance(v, (str, bool)) or v is None:
         return v
@@ -49,7 +53,7 @@ def make_envmap(path: str, width: int = 64, height: int = 32) -> None:
     sky = sky + np.array([6.0, 4.5, 3.0]) * np.exp(-(d_ang / 0.15) ** 2)[..., None]
     panel = (np.abs(u - 0.75) < 0.08) & (np.abs(elev - 0.1) < 0.35)
     sky = np.where(panel[..., None], np.array([0.1, 0.9, 0.2]), sky)
-    write_image(path, sky)
+    write_image(path, sky, _FIXED_STAMP)
 
 
 def _env_for_json(scene: Scene, out_dir: str, base_dir: str | None) -> Scene:
@@ -95,8 +99,8 @@ def write_case(out_dir: str, scene: Scene, material: Material, params, *, spp: i
         **(extra or {}),
     }
     os.makedirs(out_dir, exist_ok=True)
-    write_image(os.path.join(out_dir, "target.exr"), img)
-    write_image(os.path.join(out_dir, "preview.png"), img)
+    write_image(os.path.join(out_dir, "target.exr"), img, _FIXED_STAMP)
+    write_image(os.path.join(out_dir, "preview.png"), img, _FIXED_STAMP)
     text = json.dumps(case, indent=2, sort_keys=True) + "\n"
 
     def _write(tmp):
