@@ -428,7 +428,7 @@ def _validate(job: Job, params, target, saturated, spp: int, log: _Log):
                                         base_dir=job.base_dir), dtype=np.float64)
         mask = ~saturated if saturated.any() else None
         cmp = metrics.compare(target, img, mask=mask)
-    return img, {"renderer": "mitsuba", "spp": spp, **{k: float(v) for k, v in cmp.items()}}
+    return img, {"renderer": "mitsuba", "spp": spp, **_plain(cmp)}
 
 
 def _print_summary(log: _Log, result: dict, out: str) -> None:

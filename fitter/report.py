@@ -138,6 +138,7 @@ def _param_table(ax, result) -> None:
     truth = result.get("truth_error") or {}
     stderr = result.get("stderr") or {}
     unident = set(result.get("unidentifiable") or [])
+    converged = result.get("status") == "converged"
     header = ["parameter", "fit ± stderr"] + (["truth", "|fit − truth|", "error / stderr"]
                                               if truth else [])
     rows, colours = [], []
@@ -159,8 +160,10 @@ def _param_table(ax, result) -> None:
                     if sig is not None and np.any(np.isfinite(np.asarray(sig, dtype=float))) \
                     else np.nan
                 if np.isfinite(worst):
+                    # a fit that did not converge has no trustworthy stderr to excuse a bias
+                    bias = BIAS_SIGMAS if converged else NOISE_SIGMAS
                     colour = ("#e8f5e9" if worst <= NOISE_SIGMAS else
-                              "#fff3e0" if worst <= BIAS_SIGMAS else "#ffebee")
+                              "#fff3e0" if worst <= bias else "#ffebee")
             else:
                 row += ["", "", ""]
         if key in unident:

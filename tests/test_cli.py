@@ -124,6 +124,17 @@ def test_fit_human_output_and_an_existing_out_folder_is_replaced(small, tmp_path
     assert (out / "report.png").stat().st_size > 10_000
 
 
+def test_a_fit_that_does_not_converge_exits_3_and_still_writes_its_outputs(
+        small, tmp_path, capsys):
+    cfg = _config_with(os.path.dirname(small), max_steps=1)
+    out = tmp_path / "res"
+    code, stdout, err = _run(capsys, "fit", cfg, "--out", out, "--json", "--quiet")
+    assert code == 3, err
+    result = json.loads(stdout)
+    assert result["status"] in ("max_steps", "failed")
+    assert {"result.json", "report.png", "fit.exr"} <= set(os.listdir(out))
+
+
 def test_8bit_srgb_target_is_decoded_and_its_clipped_pixels_are_excluded(tmp_path, capsys):
     data = json.loads(json.dumps(SMALL))
     data["scene"]["lights"][0]["intensity"] = [180.0, 180.0, 180.0]  # clips the highlight

@@ -255,6 +255,41 @@ def test_missing_config_file_is_named(tmp_path):
         load_config(path)
 
 
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir)
+
+
+def _case_names():
+    from fitter.mitsuba.cases import CASES
+
+    return sorted(CASES)
+
+
+@pytest.mark.parametrize("name", _case_names())
+def test_case_config_matches_the_case_table_and_its_case_json(name):
+    """configs/<case>.toml describes exactly the shipped case (cases.py and case.json)."""
+    import json
+
+    import numpy as np
+
+    from fitter.mitsuba.cases import CASES
+
+    job = load_config(os.path.join(ROOT, "configs", f"{name}.toml"))
+    case_dir = os.path.join(ROOT, "data_synthetic", name)
+    ref = job_from_dict(CASES[name], f"<case {name}>", base_dir=case_dir)
+    assert job.scene == ref.scene
+    assert job.material == ref.material
+    assert (job.truth, job.fixed, job.synth) == (ref.truth, ref.fixed, ref.synth)
+    assert os.path.normpath(job.fit.target) == os.path.normpath(
+        os.path.join(case_dir, "target.exr"))
+    with open(os.path.join(case_dir, "case.json")) as fh:
+        case = json.load(fh)
+    assert scene_from_dict(case["scene"], base_dir=case_dir) == job.scene
+    full = job.material.full_params({**job.fixed, **job.truth})
+    assert set(full) == set(case["truth"])
+    for key, value in full.items():
+        np.testing.assert_array_equal(value, case["truth"][key], err_msg=key)
+
+
 def test_shipped_configs_load():
     folder = os.path.join(os.path.dirname(__file__), os.pardir, "configs")
     names = sorted(f for f in os.listdir(folder) if f.endswith(".toml")) if os.path.isdir(
