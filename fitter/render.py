@@ -45,16 +45,69 @@ def complete_params(material: Material, params: Mapping[str, Any], dtype=jnp.flo
     return out
 
 
+def _with_local_jacobian(fn, theta, *args):
+    """``fn(theta, *args)`` whose derivative is J(theta) @ d(theta).
+
+    A lobe depends on a handful of its own scalar parameters ``theta`` (n,),
+    while the fitter's forward-mode Jacobian pushes one tangent per *fitted*
+    coordinate through every sample. Computing the lobe's small local
+    Jacobian (..., n) once and contracting it with the tangents makes the
+    cost of a full Jacobian independent of how many other parameters are
+    fitted. ``args`` (geometry, environment) are treated as constants.
+    """
+
+    @jax.custom_jvp
+    def f(theta, *args):
+        return fn(theta, *args)
+
+    @f.defjvp
+    def f_jvp(primals, tangents):
+        theta, *rest = primals
+        jac, out = jax.jacfwd(lambda t: (fn(t, *rest),) * 2, has_aux=True)(theta)
+        return out, jnp.tensordot(jac, tangents[0], axes=1)
+
+    return f(theta, *args)
+
+
+def _param_vector(lobe, p, skip=None):
+    """The lobe's parameters (but ``skip``) as a flat vector, and its inverse."""
+    names = [q.name for q in lobe.params if q.name != skip]
+    sizes = [q.size for q in lobe.params if q.name != skip]
+    theta = jnp.concatenate([jnp.reshape(p[n], (-1,)) for n in names]) if names else None
+
+    def unflatten(t):
+        out, i = {}, 0
+        for n, k in zip(names, sizes):
+            out[n] = t[i] if k == 1 else t[i:i + k]
+            i += k
+        return out
+
+    return theta, unflatten
+
+
 def _brdf_unit(lobe, p, opts, geo: Geometry):
     """Sum over lights and samples of shape * weight * light colour: (P, 3)."""
-    g = lobe.shape(p, opts, geo.cosines)  # (L, P, K)
-    return jnp.einsum("lpk,lpk,lc->pc", g, geo.light_weight, geo.light_color)
+
+    def unit(theta, cos, weight, color):
+        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (L, P, K)
+        return jnp.einsum("lpk,lpk,lc->pc", g, weight, color)
+
+    theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
+    args = (geo.cosines, geo.light_weight, geo.light_color)
+    if theta is None:
+        return unit(None, *args)
+    return _with_local_jacobian(unit, theta, *args)
 
 
 def _specular(lobe, p, opts, geo: Geometry, env: EnvData, sphere, env_type):
-    hit = SurfaceHit(geo.position, geo.normal, geo.ray_dir, sphere[0], sphere[1])
-    rad = lobe.radiance(p, opts, hit, functools.partial(lookup, env_type, env))
-    return jnp.einsum("pkc,k->pc", jnp.where(geo.hit[..., None], rad, 0.0), geo.sample_weight)
+    theta, unflatten = _param_vector(lobe, p)
+
+    def radiance(theta, geo, env, sphere):
+        hit = SurfaceHit(geo.position, geo.normal, geo.ray_dir, sphere[0], sphere[1])
+        rad = lobe.radiance(unflatten(theta), opts, hit, functools.partial(lookup, env_type, env))
+        return jnp.einsum("pkc,k->pc", jnp.where(geo.hit[..., None], rad, 0.0), geo.sample_weight)
+
+    return _with_local_jacobian(radiance, theta, geo, env, sphere)
 
 
 @functools.partial(jax.jit, static_argnames=("material", "env_type"))

@@ -17,7 +17,7 @@ import numpy as np
 import optimistix as optx
 
 from .. import transforms
-from ..material import Material, MaterialError
+from ..material import Material
 from ..render import Renderer, _renderer
 from ..scene import Scene
 from ._problem import LOSSES, Block, Data, Spec, params_from_z, residuals, z_from_params
@@ -75,10 +75,8 @@ def _compiled(kind, spec, args, **static):
         return _COMPILED[key], 0.0
     if kind == "solve":
         f = _solve_fn(spec, **static)
-    elif kind == "jac":
-        f = jax.jacfwd(lambda z, data: residuals(z, data, spec))
-    else:
-        f = lambda z, data: residuals(z, data, spec)  # noqa: E731
+    else:  # Jacobian and residuals in one pass
+        f = jax.jacfwd(lambda z, data: (residuals(z, data, spec),) * 2, has_aux=True)
     t0 = time.perf_counter()
     exe = jax.jit(f).lower(*args).compile()
     _COMPILED[key] = exe
@@ -243,10 +241,9 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
 
     # Parameters the image does not depend on at the start are held.
     if identifiability:
-        z0 = cast(z_from_params(spec, init_full))
-        jac, tc = _compiled("jac", spec, (z0, data_))
+        J0, _, tc = _jac_res(spec, z_from_params(spec, init_full), data_)
         t_compile += tc
-        norms = np.linalg.norm(np.asarray(jac(z0, data_)), axis=0)
+        norms = np.linalg.norm(J0, axis=0)
         dead = _blocks_of(spec, norms <= ZERO_COLUMN * max(norms.max(), 1e-300))
         for key in dead:
             unidentifiable.append(key)
@@ -271,11 +268,12 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                "status": _status(int(codes[i]), zs[i], costs[i])} for i in range(len(costs))]
 
     # Re-check at the solution: a parameter with no usable information is held.
+    J, r, tc = _jac_res(spec, z_best, data_)
+    t_compile += tc
     if identifiability and np.isfinite(cost):
-        held = _unidentifiable_at(spec, z_best, data_, noise_sigma, rows.size, t_compile)
+        held = _unidentifiable_at(spec, z_best, J, r, noise_sigma)
         if held:
-            keys, tc, reasons = held
-            t_compile += tc
+            keys, reasons = held
             unidentifiable += keys
             warnings += reasons
             user_best = _user(spec, z_best, data_)
@@ -293,13 +291,11 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
             zs1, codes1, nsteps1, costs1 = (np.asarray(a) for a in solve(z1, data_))
             z_best, code, cost = zs1[0], int(codes1[0]), float(costs1[0])
             iters += int(nsteps1[0])
+            J, r, tc = _jac_res(spec, z_best, data_)
+            t_compile += tc
 
     status = _status(code, z_best, cost)
     message = optx.RESULTS._index_to_message[code] or "solver tolerances met"
-    jac, tc = _compiled("jac", spec, (cast(z_best), data_))
-    t_compile += tc
-    J = np.asarray(jac(cast(z_best), data_))
-    r = np.asarray(_compiled("res", spec, (cast(z_best), data_))[0](cast(z_best), data_))
     n_obs = int(np.count_nonzero(np.asarray(data_.weights)))
     dof = max(n_obs - spec.n, 1)
     chi2 = float(r @ r)
@@ -362,7 +358,7 @@ def _status(code: int, z, cost) -> str:
         return "failed"
     if code == 0:
         return "converged"
-    if code == int(optx.RESULTS.max_steps_reached._value):
+    if code == int(optx.RESULTS.nonlinear_max_steps_reached._value):
         return "max_steps"
     return "failed"
 
@@ -376,17 +372,20 @@ def _blocks_of(spec: Spec, flags: np.ndarray) -> list[str]:
     return [b.key for b, sl in spec.slices() if np.any(flags[sl])]
 
 
-def _unidentifiable_at(spec, z, data, noise_sigma, n_pix, t_compile):
-    """Blocks without usable information at ``z``: (keys, compile seconds, reasons) or None."""
-    cast = lambda a: jnp.asarray(a, dtype=data.target.dtype)  # noqa: E731
-    jac, tc = _compiled("jac", spec, (cast(z), data))
-    J = np.asarray(jac(cast(z), data))
-    res, tc2 = _compiled("res", spec, (cast(z), data))
-    r = np.asarray(res(cast(z), data))
-    norms = np.linalg.norm(J, axis=0)
+def _jac_res(spec, z, data):
+    """(J (N, n), residuals (N,), compile seconds) at ``z``, as NumPy."""
+    z = jnp.asarray(z, dtype=data.target.dtype)
+    exe, tc = _compiled("jacres", spec, (z, data))
+    J, r = exe(z, data)
+    return np.asarray(J), np.asarray(r), tc
+
+
+def _unidentifiable_at(spec, z, J, r, noise_sigma):
+    """Blocks without usable information at ``z``: (keys, reasons) or None."""
     keys, reasons = [], []
     if not np.all(np.isfinite(J)):
         return None
+    norms = np.linalg.norm(J, axis=0)
     dead = norms <= ZERO_COLUMN * max(norms.max(), 1e-300)
     for k in _blocks_of(spec, dead):
         keys.append(k)
@@ -419,7 +418,7 @@ def _unidentifiable_at(spec, z, data, noise_sigma, n_pix, t_compile):
             keys.append(k)
             reasons.append(f"{k} is not constrained by the image (standard error larger than "
                            "its whole range); held at its initial value")
-    return (keys, tc + tc2, reasons) if keys else None
+    return (keys, reasons) if keys else None
 
 
 def _all_held(init_full, unidentifiable, warnings, n_pix, n_drop, tc, tr) -> FitResult:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import lineax as lx
 import optax
 import optimistix as optx
 
@@ -10,6 +11,17 @@ SOLVERS = ("levenberg_marquardt", "dogleg", "gauss_newton", "bfgs", "adam")
 
 #: Adam's learning rate in the unconstrained coordinates (all O(1)).
 ADAM_LEARNING_RATE = 0.05
+
+
+def _normal():
+    """Normal equations (J^T J, p x p) by Cholesky.
+
+    With N ~ 1e5 residuals and p <= 10 well-scaled coordinates, forming the
+    p x p normal matrix is far cheaper than the default QR of the tall N x p
+    Jacobian (measured 3.5x faster per LM fit at 256^2); the squared
+    condition number is harmless in float64 for O(1) coordinates.
+    """
+    return lx.Normal(lx.Cholesky())
 
 
 def make_solver(name: str, rtol: float, atol: float):
@@ -22,11 +34,11 @@ def make_solver(name: str, rtol: float, atol: float):
     benchmarks and needs many more steps.
     """
     if name == "levenberg_marquardt":
-        return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+        return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=_normal())
     if name == "dogleg":
-        return optx.Dogleg(rtol=rtol, atol=atol)
+        return optx.Dogleg(rtol=rtol, atol=atol, linear_solver=_normal())
     if name == "gauss_newton":
-        return optx.GaussNewton(rtol=rtol, atol=atol)
+        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=_normal())
     if name == "bfgs":
         return optx.BFGS(rtol=rtol, atol=atol)
     if name == "adam":
