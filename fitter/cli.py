@@ -339,6 +339,7 @@ def cmd_fit(args) -> int:
         job = job.replace(fit=job.fit.replace(validate=args.validate))
     target_path = _target_path(job, args.target)
     target, saturated = read_target(target_path, job.scene)
+    job = job.replace(fit=job.fit.replace(target=target_path))  # config.toml records it
     out = os.path.abspath(args.out or os.path.join("out", job.name))
 
     with staged_dir(out) as tmp:
