@@ -35,8 +35,9 @@ def _is_log(kind: str) -> bool:
 def to_user(kind: str, z, lo: float, hi: float):
     """User value x(z) (JAX, differentiable)."""
     s = jax.nn.sigmoid(z)
+    lo, hi = float(lo), float(hi)  # Python floats stay weakly typed: float32 z stays float32
     if _is_log(kind):
-        a, b = np.log(lo), np.log(hi)
+        a, b = float(np.log(lo)), float(np.log(hi))
         return jnp.exp(a + (b - a) * s)
     return lo + (hi - lo) * s
 

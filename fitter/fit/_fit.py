@@ -77,8 +77,12 @@ def _compiled(kind, spec, args, **static):
         f = _solve_fn(spec, **static)
     else:  # Jacobian and residuals in one pass
         f = jax.jacfwd(lambda z, data: (residuals(z, data, spec),) * 2, has_aux=True)
+    # optimistix creates some constants (e.g. LM's damping) as Python floats, which
+    # x64 would make float64: a float32 fit is traced with x64 off.
+    single = jnp.result_type(args[0]) == jnp.float32
     t0 = time.perf_counter()
-    exe = jax.jit(f).lower(*args).compile()
+    with jax.enable_x64(not single):
+        exe = jax.jit(f).lower(*args).compile()
     _COMPILED[key] = exe
     return exe, time.perf_counter() - t0
 
@@ -224,7 +228,8 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
 
     blocks, fixed_values = _blocks(material, init_full, fixed_keys, bounds)
     cast = lambda a: jnp.asarray(a, dtype=dtype)  # noqa: E731
-    data = Data(renderer.geometry.subset(rows), renderer.env, renderer.sphere,
+    geometry = renderer.geometry.subset(rows)._replace(pixel_index=None, background_image=None)
+    data = Data(geometry, renderer.env, renderer.sphere,
                 cast(flat_target[rows]), cast(w), {})
     warnings: list[str] = []
     unidentifiable: list[str] = []
