@@ -51,9 +51,11 @@ def _resolve(base_dir, path):
 def direction_to_uv(v):
     """Mitsuba envmap coordinates (u, v) in [0, 1) x [0, 1] of unit directions (..., 3)."""
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    u = jnp.arctan2(x, -z) / (2.0 * jnp.pi)
+    r2 = x * x + z * z
+    off_pole = r2 > 0  # at the poles u is arbitrary; atan2(0, 0) has a NaN gradient
+    u = jnp.arctan2(jnp.where(off_pole, x, 0.0), jnp.where(off_pole, -z, 1.0)) / (2.0 * jnp.pi)
     u = u - jnp.floor(u)
-    theta = jnp.arctan2(safe_sqrt(x * x + z * z), y)
+    theta = jnp.arctan2(safe_sqrt(r2), y)
     return u, theta / jnp.pi
 
 
