@@ -54,7 +54,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # argparse printed usage and the reason
         return EXIT_OK if exc.code == 0 else EXIT_INPUT
     try:
-        return args.run(args)
+        with _sigterm_as_interrupt():
+            return args.run(args)
     except KeyboardInterrupt:
         print("fitter: interrupted", file=sys.stderr)
         return 130
@@ -63,6 +64,25 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"fitter: error: {exc}", file=sys.stderr)
             return EXIT_INPUT
         raise
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """Let SIGTERM unwind like Ctrl-C so staged output folders are removed."""
+    import signal
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread: leave signals alone
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _is_user_error(exc: BaseException) -> bool:
@@ -419,17 +439,24 @@ def _render_fit(job: Job, params: Mapping[str, Any], log: _Log) -> np.ndarray:
         return np.asarray(render(full, job.scene, job.material, base_dir=job.base_dir))
 
 
+def validation_seed(job: Job) -> int:
+    """Sampler seed of validation renders: never the synth seed, so that a
+    validation at the target's spp does not reproduce the target's noise."""
+    return job.synth.seed + 1
+
+
 def _validate(job: Job, params, target, saturated, spp: int, log: _Log):
     """Mitsuba re-render of ``params`` and its comparison with ``target``."""
     from . import metrics, mitsuba
 
     full = job.material.full_params(params)
+    seed = validation_seed(job)
     with log.stage(f"validating with Mitsuba ({spp} spp)"):
-        img = np.asarray(mitsuba.render(job.scene, job.material, full, spp=spp,
+        img = np.asarray(mitsuba.render(job.scene, job.material, full, spp=spp, seed=seed,
                                         base_dir=job.base_dir), dtype=np.float64)
         mask = ~saturated if saturated.any() else None
         cmp = metrics.compare(target, img, mask=mask)
-    return img, {"renderer": "mitsuba", "spp": spp, **_plain(cmp)}
+    return img, {"renderer": "mitsuba", "spp": spp, "seed": seed, **_plain(cmp)}
 
 
 def _print_summary(log: _Log, result: dict, out: str) -> None:

@@ -27,7 +27,13 @@ RESIDUAL_PERCENTILE = 99.5
 NOISE_SIGMAS = 3.0
 BIAS_SIGMAS = 100.0
 
-GOOD, BAD, NEUTRAL = "#1a7f37", "#c62828", "#555555"
+#: Mean CIEDE2000 of the Mitsuba re-render against the target: below
+#: INVISIBLE_DE the difference is not visible side by side, below JND_DE it
+#: is at most just noticeable (Sharma et al. 2005; see fitter.metrics).
+INVISIBLE_DE = 1.0
+JND_DE = 2.3
+
+GOOD, WARN, BAD, NEUTRAL = "#1a7f37", "#e08a00", "#c62828", "#555555"
 
 
 def display(image: np.ndarray, white: float) -> np.ndarray:
@@ -102,17 +108,35 @@ def _headline(ax, result, title: str) -> None:
     ax.axis("off")
     ok = result.get("status") == "converged"
     verdict = "CONVERGED" if ok else f"NOT CONVERGED ({result.get('status')})"
-    ax.text(0.0, 0.5, verdict, color="white", fontsize=17, fontweight="bold", va="center",
-            bbox={"boxstyle": "round,pad=0.4", "facecolor": GOOD if ok else BAD,
-                  "edgecolor": "none"})
+    x_text = _badge(ax, 0.0, verdict, GOOD if ok else BAD)
     bits = [title] if title else []
     v = result.get("validation")
     if v:
-        bits.append(f"Mitsuba PSNR {_num(v.get('psnr_db'), '.1f')} dB, "
-                    f"ΔE2000 mean {_num(v.get('delta_e2000_mean'), '.2g')}, "
-                    f"max {_num(v.get('delta_e2000_max'), '.2g')}")
+        de = v.get("delta_e2000_mean")
+        if de is None:
+            label, colour = "Mitsuba: n/a", BAD
+        elif de <= INVISIBLE_DE:
+            label, colour = "MITSUBA: NO VISIBLE DIFFERENCE", GOOD
+        elif de <= JND_DE:
+            label, colour = "MITSUBA: JUST NOTICEABLE", WARN
+        else:
+            label, colour = "MITSUBA: VISIBLE DIFFERENCE", BAD
+        x_text = _badge(ax, x_text, label, colour)
+        bits.append(f"PSNR {_num(v.get('psnr_db'), '.1f')} dB, "
+                    f"ΔE2000 mean {_num(de, '.2g')}, max {_num(v.get('delta_e2000_max'), '.2g')}")
     bits.append(f"image RMSE {_num(result.get('image_rmse'), '.3g')}")
-    ax.text(0.22, 0.5, "   |   ".join(bits), fontsize=13, va="center")
+    ax.text(x_text, 0.5, "  |  ".join(bits), fontsize=12, va="center")
+
+
+def _badge(ax, x: float, text: str, colour: str) -> float:
+    """Draw a coloured label at axes x; return the x just right of it."""
+    t = ax.text(x, 0.5, text, color="white", fontsize=15, fontweight="bold", va="center",
+                bbox={"boxstyle": "round,pad=0.4", "facecolor": colour, "edgecolor": "none"})
+    box = t.get_bbox_patch()
+    renderer = ax.figure.canvas.get_renderer()
+    t.draw(renderer)  # sizes the bbox patch
+    right = box.get_window_extent(renderer).x1
+    return ax.transAxes.inverted().transform((right, 0))[0] + 0.015
 
 
 def _residual(fig, ax, residual: np.ndarray, fitted) -> None:
