@@ -1,0 +1,100 @@
+"""Parameters an image cannot constrain are reported and held, never fitted;
+degenerate inputs give clear errors or documented, finite results."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import fitter
+from fitter.fit import FitError
+
+LIGHTS = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),)
+SCENE = fitter.Scene(width=32, height=32, supersampling=2, lights=LIGHTS)
+
+
+def all_finite(result):
+    values = [result.params[k] for k in result.params] + [result.stderr[k] for k in result.stderr]
+    return all(np.all(np.isfinite(v)) for v in values) and np.all(np.isfinite(result.correlation))
+
+
+def test_mirror_in_a_black_environment_is_unidentifiable():
+    # A mirror only shows the environment: black everywhere -> rho_m has no effect.
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "mirror.rho_m": 0.8}
+    target = np.asarray(fitter.render(truth, SCENE))
+    r = fitter.fit(target, SCENE, "lambert+mirror", init={"lambert.rho_d": 0.3, "mirror.rho_m": 0.5})
+    assert r.unidentifiable == ["mirror.rho_m"]
+    assert "mirror.rho_m" not in r.stderr and "mirror.rho_m" not in r.free
+    assert r.params["mirror.rho_m"] == pytest.approx(0.5)  # held at its start, not "fitted"
+    assert any("mirror.rho_m" in w for w in r.warnings)
+    np.testing.assert_allclose(r.params["lambert.rho_d"], truth["lambert.rho_d"], rtol=1e-6)
+    assert r.status == "converged" and all_finite(r)
+
+
+def test_fresnel_scale_degeneracy_is_detected():
+    # Orthographic view with the light along the view axis: every half vector is
+    # the view direction, so F = F(normal incidence; eta) is one constant and only
+    # rho_s * F0(eta) is measurable (lecture: F0 = ((eta-1)/(eta+1))^2).
+    scene = fitter.Scene(
+        width=32, height=32, supersampling=2,
+        camera=fitter.Camera(type="orthographic", half_width=1.2),
+        lights=(fitter.DirectionalLight((0.0, 0.0, -1.0), (3.0, 3.0, 3.0)),))
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "torrance_sparrow.m": 0.3,
+             "torrance_sparrow.eta": 1.5, "torrance_sparrow.rho_s": 0.8}
+    target = np.asarray(fitter.render(truth, scene))
+    r = fitter.fit(target, scene, "lambert+torrance_sparrow",
+                   init={"torrance_sparrow.rho_s": 0.6, "torrance_sparrow.eta": 1.8,
+                         "torrance_sparrow.m": 0.35})
+    held = set(r.unidentifiable)
+    assert len(held) == 1 and held <= {"torrance_sparrow.eta", "torrance_sparrow.rho_s"}
+    f0 = lambda eta: ((eta - 1) / (eta + 1)) ** 2  # noqa: E731
+    product = r.params["torrance_sparrow.rho_s"] * f0(r.params["torrance_sparrow.eta"])
+    assert product == pytest.approx(0.8 * f0(1.5), rel=1e-5)
+    assert r.params["torrance_sparrow.m"] == pytest.approx(0.3, rel=1e-5)
+    assert all_finite(r)
+
+
+def test_nothing_lit_reports_failure_without_nan():
+    # The only light is behind the sphere: no visible pixel depends on the lobe.
+    scene = SCENE.replace(lights=(fitter.PointLight((0.0, 0.0, -6.0), (50.0, 50.0, 50.0)),))
+    target = np.asarray(fitter.render({"phong.rho_s": 0.5, "phong.e": 10.0}, scene))
+    r = fitter.fit(target, scene, "phong")
+    assert r.status == "failed"
+    assert set(r.unidentifiable) == {"phong.rho_s", "phong.e"}
+    assert all(np.all(np.isfinite(v)) for v in r.params.values())
+
+
+def test_all_black_target_gives_zero_reflectance_at_bound():
+    target = np.zeros((32, 32, 3))
+    r = fitter.fit(target, SCENE, "lambert")
+    assert np.all(np.asarray(r.params["lambert.rho_d"]) < 1e-4)
+    assert any("at the bound" in w for w in r.warnings)
+    assert all_finite(r)
+
+
+def test_nan_and_saturated_pixels_are_excluded_and_counted():
+    truth = {"lambert.rho_d": [0.6, 0.4, 0.2]}
+    target = np.asarray(fitter.render(truth, SCENE)).copy()
+    target[16, 10:15] = np.nan
+    target[12, 12:16] = 50.0  # "saturated"
+    r = fitter.fit(target, SCENE, "lambert", saturation=10.0)
+    assert r.n_excluded == 9
+    np.testing.assert_allclose(r.params["lambert.rho_d"], truth["lambert.rho_d"], rtol=1e-6)
+
+
+def test_empty_mask_is_a_clear_error():
+    target = np.zeros((32, 32, 3))
+    with pytest.raises(FitError, match="no pixels to fit"):
+        fitter.fit(target, SCENE, "lambert", mask=np.zeros((32, 32), dtype=bool))
+
+
+def test_bad_arguments_are_clear_errors():
+    target = np.zeros((32, 32, 3))
+    with pytest.raises(FitError, match="expected"):
+        fitter.fit(np.zeros((8, 8, 3)), SCENE, "lambert")
+    with pytest.raises(FitError, match="unknown solver"):
+        fitter.fit(target, SCENE, "lambert", solver="newton")
+    with pytest.raises(fitter.MaterialError, match="outside its valid range"):
+        fitter.fit(target, SCENE, "lambert", init={"lambert.rho_d": 1.5})
+    with pytest.raises(fitter.MaterialError, match="unknown lobe"):
+        fitter.fit(target, SCENE, "lambertian")
