@@ -272,6 +272,26 @@ def test_input_errors_exit_2_with_one_sentence_and_no_output(small, tmp_path, ca
     assert not os.path.exists(os.path.join("out", "small"))
 
 
+def test_staged_dir_leaves_nothing_on_failure_and_keeps_an_existing_folder(tmp_path):
+    from fitter.cli import staged_dir
+
+    out = tmp_path / "a" / "res"
+    with pytest.raises(RuntimeError):
+        with staged_dir(str(out)) as tmp:
+            (tmp_path / "seen").write_text(tmp)
+            open(os.path.join(tmp, "half.exr"), "w").close()
+            raise RuntimeError("boom")
+    assert not os.path.exists((tmp_path / "seen").read_text())
+    assert not (tmp_path / "a").exists()
+    out.mkdir(parents=True)
+    (out / "keep.txt").write_text("old")
+    with pytest.raises(KeyboardInterrupt):
+        with staged_dir(str(out)):
+            raise KeyboardInterrupt
+    assert sorted(os.listdir(tmp_path / "a")) == ["res"]
+    assert (out / "keep.txt").read_text() == "old"
+
+
 def test_bench_without_a_bench_module_says_so(capsys):
     import importlib.util
 
