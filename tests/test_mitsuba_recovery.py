@@ -50,8 +50,11 @@ EXTREME = {
 #: still meet the tolerances.
 AT_BOX_EDGE = {"extreme_sigma0"}
 #: The dielectric fit takes minutes (its model traces 9 internal bounces);
-#: run with FITTER_SLOW_TESTS=1.
+#: run with FITTER_SLOW_TESTS=1. It needs several starts: from the default
+#: attenuation = 1 (its box edge) one start was reported "converged" at
+#: eta = 2.35 with the attenuation held as unidentifiable (measured).
 SLOW = {"dielectric"}
+N_STARTS = {"dielectric": 4}
 
 
 def _load(name):
@@ -68,7 +71,8 @@ def _load(name):
     if n in SLOW else n for n in CASES])
 def test_recovers_truth(name):
     job, truth, target, folder = _load(name)
-    res = fitter.fit(target, job.scene, job.material, base_dir=folder)
+    res = fitter.fit(target, job.scene, job.material, base_dir=folder,
+                     n_starts=N_STARTS.get(name, 1))
     if name in AT_BOX_EDGE:
         assert res.status in ("converged", "max_steps"), res.message
     else:
