@@ -78,6 +78,9 @@ CASES = {
     "lambert+torrance_sparrow": (
         BASE, "lambert+torrance_sparrow", {},
         {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.15}, 1024),
+    # A sum with a delta lobe: the ``path`` integrator samples fitter_sum.
+    "lambert+mirror_path": (BASE, "lambert+mirror", {},
+                            {"lambert.rho_d": [0.6, 0.4, 0.2], "mirror.rho_m": 0.5}, 1024),
     "mirror_envmap": (BASE.replace(lights=()), "mirror", {}, {"mirror.rho_m": [0.9, 0.8, 0.7]},
                       1024),
     "dielectric_envmap": (BASE.replace(lights=()), "dielectric", {},

@@ -182,8 +182,9 @@ def _classes(mi):
                              if isinstance(props[k], mi.BSDF)]
             if not self.children:
                 raise ValueError("fitter_sum needs at least one nested BSDF")
-            comps, flags = [], 0
+            comps, flags, self.offsets = [], 0, []
             for c in self.children:
+                self.offsets.append(len(comps))
                 for i in range(c.component_count()):
                     comps.append(c.flags(i))
                 flags |= int(c.flags())
@@ -209,12 +210,14 @@ def _classes(mi):
         def sample(self, ctx, si, sample1, sample2, active=True):
             idx = dr.minimum(mi.UInt32(sample1 * self.n), self.n - 1)
             s1 = sample1 * self.n - mi.Float(idx)
-            bs, weight = mi.BSDFSample3f(), mi.Color3f(0.0)
+            bs, weight = dr.zeros(mi.BSDFSample3f), mi.Color3f(0.0)
             for i, c in enumerate(self.children):
                 sel = active & (idx == i)
                 bs_i, w_i = c.sample(ctx, si, s1, sample2, sel)
-                bs[sel] = bs_i
-                weight[sel] = w_i
+                bs_i.sampled_component = bs_i.sampled_component + self.offsets[i]
+                for field in ("wo", "pdf", "eta", "sampled_type", "sampled_component"):
+                    setattr(bs, field, dr.select(sel, getattr(bs_i, field), getattr(bs, field)))
+                weight = dr.select(sel, w_i, weight)
             delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             value, pdf = self.eval_pdf(ctx, si, bs.wo, active & ~delta)
             smooth_w = dr.select(pdf > 0, value / pdf, 0.0)
