@@ -12,7 +12,7 @@ from .bsdf import LOBES as LOBES  # noqa: E402
 from .material import Material as Material, MaterialError as MaterialError  # noqa: E402
 from .render import Renderer as Renderer, render as render  # noqa: E402
 from . import fit as fit  # noqa: E402  (callable: fitter.fit(target, scene, material, ...))
-from .fit import FitResult as FitResult  # noqa: E402
+from .fit import FitResult as FitResult, fit_batch as fit_batch  # noqa: E402
 from .scene import (  # noqa: E402
     Camera as Camera,
     DirectionalLight as DirectionalLight,

@@ -7,6 +7,7 @@ re-check identifiability at the solution -> covariance -> FitResult.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from typing import Any, Mapping
@@ -18,7 +19,7 @@ import optimistix as optx
 
 from .. import transforms
 from ..material import Material
-from ..render import Renderer, _renderer
+from ..render import Renderer, _renderer, render_active
 from ..scene import Scene
 from ._problem import LOSSES, Block, Data, Spec, params_from_z, residuals, z_from_params
 from ._solvers import SOLVERS, make_solver
@@ -67,6 +68,22 @@ def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps:
     return many
 
 
+def _batch_fn(spec: Spec, batch: str, **static):
+    """One start per target: ``(z0, data with stacked targets/weights) -> stacked results``."""
+    one = _solve_fn(spec, **static)
+
+    def single(z0, target, weights, data):
+        out = one(z0[None], data._replace(target=target, weights=weights))
+        return jax.tree_util.tree_map(lambda a: a[0], out)
+
+    def run(z0, data):
+        if batch == "vmap":
+            return jax.vmap(single, in_axes=(None, 0, 0, None))(z0, data.target, data.weights, data)
+        return jax.lax.map(lambda tw: single(z0, tw[0], tw[1], data), (data.target, data.weights))
+
+    return run
+
+
 def _compiled(kind, spec, args, **static):
     """Compile (once per structure and shapes) and return (executable, seconds spent)."""
     shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
@@ -75,6 +92,8 @@ def _compiled(kind, spec, args, **static):
         return _COMPILED[key], 0.0
     if kind == "solve":
         f = _solve_fn(spec, **static)
+    elif kind == "batch":
+        f = _batch_fn(spec, **static)
     else:  # Jacobian and residuals in one pass
         f = jax.jacfwd(lambda z, data: (residuals(z, data, spec),) * 2, has_aux=True)
     # optimistix creates some constants (e.g. LM's damping) as Python floats, which
@@ -127,21 +146,20 @@ def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
     return rows, int(chosen.sum() - rows.size), flat
 
 
-def _blocks(material: Material, init_full, fixed, bounds) -> tuple[tuple[Block, ...], dict]:
-    specs = material.param_specs()
-    blocks, fixed_values = [], {}
-    for key, spec in specs.items():
+def _blocks(material: Material, fixed_keys, bounds) -> tuple[Block, ...]:
+    """Free parameters as solver blocks, with their (possibly narrowed) boxes."""
+    blocks = []
+    for key, spec in material.param_specs().items():
+        if key in fixed_keys:
+            continue
         lo, hi = spec.lower, spec.upper
         if bounds and key in bounds:
             lo, hi = (float(v) for v in bounds[key])
             if not (spec.lower <= lo < hi <= spec.upper):
                 raise FitError(f"bounds for {key} = {(lo, hi)} must satisfy "
                                f"{spec.lower:g} <= lower < upper <= {spec.upper:g}")
-        if key in fixed:
-            fixed_values[key] = init_full[key]
-        else:
-            blocks.append(Block(key, spec.size, spec.transform, lo, hi))
-    return tuple(blocks), fixed_values
+        blocks.append(Block(key, spec.size, spec.transform, lo, hi))
+    return tuple(blocks)
 
 
 def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None,
@@ -184,166 +202,294 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         not raised. Raises ``FitError`` / ``MaterialError`` for bad input.
     """
     t_start = time.perf_counter()
-    material = _as_material(material)
-    if solver not in SOLVERS:
-        raise FitError(f"unknown solver {solver!r}; known: {', '.join(SOLVERS)}")
-    if loss not in LOSSES:
-        raise FitError(f"unknown loss {loss!r}; known: {', '.join(LOSSES)}")
     if n_starts < 1:
         raise FitError(f"n_starts = {n_starts} must be >= 1")
-    target = np.asarray(target, dtype=np.float64)
-    if target.shape != (scene.height, scene.width, 3):
-        raise FitError(f"target has shape {target.shape}, expected "
-                       f"{(scene.height, scene.width, 3)} from the scene")
-    options = {k: v for k, v in {**(init or {}), **(fixed or {})}.items()
-               if k in material.option_keys()}
-    if options:
-        material = Material.make(material.lobes, {**dict(material.options), **options})
-    numeric_fixed = {k: v for k, v in (fixed or {}).items() if k not in material.option_keys()}
-    numeric_init = {k: v for k, v in (init or {}).items() if k not in material.option_keys()}
-    overlap = set(numeric_fixed) & set(numeric_init)
-    if overlap:
-        raise FitError(f"{sorted(overlap)} given both as initial and as fixed values")
-    init_full = material.full_params({**numeric_init, **numeric_fixed})
-    fixed_keys = set(numeric_fixed) | {k for k, s in material.param_specs().items()
-                                       if not s.free and k not in numeric_init}
-
-    renderer = _renderer(scene, material, jnp.dtype(dtype),
-                         os.path.abspath(base_dir) if base_dir else None)
-    rows, n_dropped, flat_target = select_pixels(renderer, target, mask, exclude, saturation)
-    if rows.size == 0:
-        raise FitError("no pixels to fit: the mask selects none, or every selected pixel "
-                       "is NaN/Inf, negative, excluded or saturated")
-    w = np.ones((rows.size, 3))
-    if weights is not None:
-        wt = np.broadcast_to(np.asarray(weights, dtype=np.float64)[..., None]
-                             if np.ndim(weights) == 2 else np.asarray(weights, dtype=np.float64),
-                             (scene.height, scene.width, 3))
-        w = wt.reshape(-1, 3)[renderer.pixel_index][rows]
-    if noise_sigma is not None:
-        if not noise_sigma > 0:
-            raise FitError(f"noise_sigma = {noise_sigma} must be > 0")
-        w = w / noise_sigma
-    scale = loss_scale if loss_scale is not None else (1.0 if noise_sigma else 0.01)
-
-    blocks, fixed_values = _blocks(material, init_full, fixed_keys, bounds)
-    cast = lambda a: jnp.asarray(a, dtype=dtype)  # noqa: E731
-    geometry = renderer.geometry.subset(rows)._replace(pixel_index=None, background_image=None)
-    data = Data(geometry, renderer.env, renderer.sphere,
-                cast(flat_target[rows]), cast(w), {})
-    warnings: list[str] = []
-    unidentifiable: list[str] = []
-    t_compile = 0.0
-
-    def make(blocks_):
-        fixed_now = {k: cast(v) for k, v in init_full.items()
-                     if k not in {b.key for b in blocks_}}
-        return Spec(material, renderer.env_type, blocks_, loss, scale), data._replace(fixed=fixed_now)
-
-    spec, data_ = make(blocks)
-    if not blocks:
-        raise FitError("every parameter is fixed: nothing to fit")
-
-    # Parameters the image does not depend on at the start are held.
+    job = _Job.make(target[None] if np.ndim(target) == 3 else target, scene, material,
+                    init=init, fixed=fixed, bounds=bounds, solver=solver, mask=mask,
+                    exclude=exclude, weights=weights, noise_sigma=noise_sigma, loss=loss,
+                    loss_scale=loss_scale, saturation=saturation, max_steps=max_steps,
+                    rtol=rtol, atol=atol, dtype=dtype, base_dir=base_dir)
+    if job.targets.shape[0] != 1:
+        raise FitError(f"target has shape {np.shape(target)}, expected "
+                       f"{(scene.height, scene.width, 3)}; use fit_batch for several targets")
     if identifiability:
-        J0, _, tc = _jac_res(spec, z_from_params(spec, init_full), data_)
-        t_compile += tc
-        norms = np.linalg.norm(J0, axis=0)
-        dead = _blocks_of(spec, norms <= ZERO_COLUMN * max(norms.max(), 1e-300))
-        for key in dead:
-            unidentifiable.append(key)
-            warnings.append(f"{key} does not change the fitted pixels at the start "
-                            f"(zero Jacobian column); held at {_fmt(init_full[key])}")
-        blocks = tuple(b for b in blocks if b.key not in dead)
-        if not blocks:
-            return _all_held(init_full, unidentifiable, warnings, rows.size, n_dropped,
-                             t_compile, time.perf_counter() - t_start - t_compile)
-        spec, data_ = make(blocks)
-
-    steps = max_steps or MAX_STEPS.get(solver, DEFAULT_MAX_STEPS)
-    static = dict(solver_name=solver, rtol=rtol, atol=atol, max_steps=steps)
-    z_init = z_from_params(spec, init_full)
-    z0s = cast(make_starts(spec, z_init, n_starts))
-    solve, tc = _compiled("solve", spec, (z0s, data_), **static)
-    t_compile += tc
-    zs, codes, nsteps, costs = (np.asarray(a) for a in solve(z0s, data_))
+        early = job.hold_dead_columns()
+        if early is not None:
+            return early
+    data = job.data(0)
+    z0s = job.cast(make_starts(job.spec, job.z_init(), n_starts))
+    solve, tc = _compiled("solve", job.spec, (z0s, data), **job.static)
+    job.t_compile += tc
+    zs, codes, nsteps, costs = (np.asarray(a) for a in solve(z0s, data))
     best = _best(costs, zs)
-    z_best, code, iters, cost = zs[best], int(codes[best]), int(nsteps[best]), float(costs[best])
-    starts = [{"params": _user(spec, zs[i], data_), "cost": float(costs[i]),
+    starts = [{"params": _user(job.spec, zs[i], data), "cost": float(costs[i]),
                "status": _status(int(codes[i]), zs[i], costs[i])} for i in range(len(costs))]
+    return job.finish(0, zs[best], int(codes[best]), int(nsteps[best]), float(costs[best]),
+                      identifiability, t_start, starts)
 
-    # Re-check at the solution: a parameter with no usable information is held.
-    J, r, tc = _jac_res(spec, z_best, data_)
-    t_compile += tc
-    if identifiability and np.isfinite(cost):
-        held = _unidentifiable_at(spec, z_best, J, r, noise_sigma)
-        if held:
-            keys, reasons = held
-            unidentifiable += keys
-            warnings += reasons
-            user_best = _user(spec, z_best, data_)
-            for k in keys:
-                init_full[k] = np.asarray(init_full[k])  # held at its initial value
-            blocks = tuple(b for b in blocks if b.key not in keys)
-            if not blocks:
-                return _all_held(init_full, unidentifiable, warnings, rows.size, n_dropped,
-                                 t_compile, time.perf_counter() - t_start - t_compile)
-            spec, data_ = make(blocks)
-            z1 = cast(z_from_params(spec, {**init_full, **{k: v for k, v in user_best.items()
-                                                         if k not in keys}})[None])
-            solve, tc = _compiled("solve", spec, (z1, data_), **static)
-            t_compile += tc
-            zs1, codes1, nsteps1, costs1 = (np.asarray(a) for a in solve(z1, data_))
-            z_best, code, cost = zs1[0], int(codes1[0]), float(costs1[0])
-            iters += int(nsteps1[0])
-            J, r, tc = _jac_res(spec, z_best, data_)
-            t_compile += tc
 
-    status = _status(code, z_best, cost)
-    message = optx.RESULTS._index_to_message[code] or "solver tolerances met"
-    n_obs = int(np.count_nonzero(np.asarray(data_.weights)))
-    dof = max(n_obs - spec.n, 1)
-    chi2 = float(r @ r)
-    s2 = 1.0 if noise_sigma is not None else chi2 / dof
-    if noise_sigma is not None and status == "converged" and chi2 / dof > MAX_REDUCED_CHI2:
-        status = "failed"
-        message = (f"poor fit: chi^2/dof = {chi2 / dof:.3g} > {MAX_REDUCED_CHI2} for the given "
-                   "noise_sigma (a local minimum or a model that cannot explain the image; "
-                   "try n_starts > 1)")
-    cov_z = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
-    if not np.all(np.isfinite(cov_z)):
-        cov_z = np.full_like(cov_z, np.nan)
-        status, message = "failed", "covariance is not finite"
-    params = _user(spec, z_best, data_)
-    stderr, coords = {}, []
-    dxdz = np.concatenate([np.atleast_1d(np.asarray(
-        transforms.derivative(b.transform, jnp.asarray(z_best[sl]), b.lower, b.upper)))
-        for b, sl in spec.slices()])
-    sd = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * dxdz
-    for b, sl in spec.slices():
-        stderr[b.key] = sd[sl] if b.size == 3 else float(sd[sl][0])
-        coords += [b.key] if b.size == 1 else [f"{b.key}[{i}]" for i in range(3)]
-        u = (np.asarray(params[b.key]) - b.lower) / (b.upper - b.lower)
-        if np.any((u < AT_BOUND) | (u > 1 - AT_BOUND)):
-            warnings.append(f"{b.key} = {_fmt(params[b.key])} is at the bound of "
-                            f"[{b.lower:g}, {b.upper:g}]; its standard error is not meaningful")
-    d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
-    corr = cov_z / np.outer(d, d)
-    model = flat_target[rows] + r.reshape(-1, 3) / np.where(w > 0, w, 1.0) \
-        if loss == "l2" else None
-    if model is None:
-        p_all = params_from_z(spec, cast(z_best), data_.fixed)
-        model = np.asarray(renderer.active(p_all))[rows]
-    rmse = np.sqrt(np.mean((model - flat_target[rows]) ** 2, axis=0))
-    total = time.perf_counter() - t_start
-    return FitResult(
-        params={k: (np.asarray(params[k]) if np.size(params[k]) > 1 else float(params[k]))
-                for k in material.param_specs()},
-        stderr=stderr, free=[b.key for b in spec.blocks], unidentifiable=unidentifiable,
-        correlation=corr, coordinates=coords, status=status, message=message,
-        iterations=iters, cost=cost, image_rmse=rmse, n_pixels=int(rows.size),
-        n_excluded=n_dropped, time_compile=t_compile, time_run=total - t_compile,
-        warnings=warnings, starts=starts)
+def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
+              identifiability: bool = True, **kwargs) -> list[FitResult]:
+    """Fit many targets of one scene and material in one compiled solve.
+
+    Args:
+        targets: (B, H, W, 3) images.
+        batch: ``"map"`` (``jax.lax.map``, default: on CPU a vmapped solver
+            loop runs every fit for as many steps as the slowest one) or
+            ``"vmap"`` (``jax.vmap``, for accelerators).
+        kwargs: as ``fit`` (except ``n_starts`` and ``exclude``); the pixel
+            selection is shared, NaN/Inf/saturated pixels of each target get
+            weight 0.
+
+    Returns:
+        One ``FitResult`` per target. A target whose solution leaves a
+        parameter unidentifiable is refitted alone by ``fit`` with that
+        parameter held, so each result is what ``fit`` would report; times
+        of the shared solve are split evenly.
+    """
+    t_start = time.perf_counter()
+    if batch not in ("map", "vmap"):
+        raise FitError(f"batch = {batch!r}: expected 'map' or 'vmap'")
+    targets = np.asarray(targets, dtype=np.float64)
+    if targets.ndim != 4:
+        raise FitError(f"targets have shape {targets.shape}, expected (B, H, W, 3)")
+    job = _Job.make(targets, scene, material, **kwargs)
+    if identifiability:
+        early = job.hold_dead_columns()
+        if early is not None:
+            return [dataclasses.replace(early) for _ in range(targets.shape[0])]
+    data = job.data(None)
+    z0 = job.cast(job.z_init())
+    solve, tc = _compiled("batch", job.spec, (z0, data), batch=batch, **job.static)
+    job.t_compile += tc
+    zs, codes, nsteps, costs = (np.asarray(a) for a in solve(z0, data))
+    share = (time.perf_counter() - t_start - job.t_compile) / len(targets)
+    results = []
+    for b in range(len(targets)):
+        t0 = time.perf_counter()
+        res = job.finish(b, zs[b], int(codes[b]), int(nsteps[b]), float(costs[b]),
+                         identifiability, t0, starts=[], refit=False)
+        if identifiability and res is None:  # became unidentifiable: refit alone
+            res = fit(targets[b], scene, material, identifiability=True, **kwargs)
+        else:
+            res.time_run += share
+            res.time_compile = job.t_compile / len(targets)
+        results.append(res)
+    return results
+
+
+@dataclasses.dataclass
+class _Job:
+    """A fit set up: pixels, data arrays, free blocks; shared by fit and fit_batch."""
+
+    material: Material
+    renderer: Renderer
+    geometry: Any  # the renderer's geometry restricted to ``rows``
+    rows: np.ndarray
+    n_dropped: int
+    targets: np.ndarray  # (B, P, 3) selected pixels, 0 where unusable
+    weights: np.ndarray  # (B, P, 3)
+    init_full: dict
+    blocks: tuple
+    loss: str
+    loss_scale: float
+    noise_sigma: float | None
+    dtype: Any
+    static: dict
+    unidentifiable: list = dataclasses.field(default_factory=list)
+    warnings: list = dataclasses.field(default_factory=list)
+    t_compile: float = 0.0
+
+    @classmethod
+    def make(cls, targets, scene, material, *, init=None, fixed=None, bounds=None,
+             solver="levenberg_marquardt", mask="interior", exclude=None, weights=None,
+             noise_sigma=None, loss="l2", loss_scale=None, saturation=None, max_steps=None,
+             rtol=1e-8, atol=1e-10, dtype=jnp.float64, base_dir=None) -> "_Job":
+        material = _as_material(material)
+        if solver not in SOLVERS:
+            raise FitError(f"unknown solver {solver!r}; known: {', '.join(SOLVERS)}")
+        if loss not in LOSSES:
+            raise FitError(f"unknown loss {loss!r}; known: {', '.join(LOSSES)}")
+        targets = np.asarray(targets, dtype=np.float64)
+        if targets.shape[1:] != (scene.height, scene.width, 3):
+            raise FitError(f"target has shape {targets.shape[1:]}, expected "
+                           f"{(scene.height, scene.width, 3)} from the scene")
+        if noise_sigma is not None and not noise_sigma > 0:
+            raise FitError(f"noise_sigma = {noise_sigma} must be > 0")
+        options = {k: v for k, v in {**(init or {}), **(fixed or {})}.items()
+                   if k in material.option_keys()}
+        if options:
+            material = Material.make(material.lobes, {**dict(material.options), **options})
+        opt_keys = material.option_keys()
+        numeric_fixed = {k: v for k, v in (fixed or {}).items() if k not in opt_keys}
+        numeric_init = {k: v for k, v in (init or {}).items() if k not in opt_keys}
+        overlap = set(numeric_fixed) & set(numeric_init)
+        if overlap:
+            raise FitError(f"{sorted(overlap)} given both as initial and as fixed values")
+        init_full = material.full_params({**numeric_init, **numeric_fixed})
+        fixed_keys = set(numeric_fixed) | {k for k, s in material.param_specs().items()
+                                           if not s.free and k not in numeric_init}
+        blocks = _blocks(material, fixed_keys, bounds)
+        if not blocks:
+            raise FitError("every parameter is fixed: nothing to fit")
+
+        renderer = _renderer(scene, material, jnp.dtype(dtype),
+                             os.path.abspath(base_dir) if base_dir else None)
+        # Pixels are chosen on the first target; others mark their bad pixels by weight 0.
+        rows, n_dropped, _ = select_pixels(renderer, targets[0], mask, exclude, saturation)
+        if rows.size == 0:
+            raise FitError("no pixels to fit: the mask selects none, or every selected pixel "
+                           "is NaN/Inf, negative, excluded or saturated")
+        picked = targets.reshape(len(targets), -1, 3)[:, renderer.pixel_index[rows]]
+        usable = np.all(np.isfinite(picked) & (picked >= 0), axis=-1, keepdims=True)
+        if saturation is not None:
+            usable &= np.all(np.where(np.isfinite(picked), picked, 0) < saturation,
+                             axis=-1, keepdims=True)
+        w = np.ones(picked.shape)
+        if weights is not None:
+            wt = np.asarray(weights, dtype=np.float64)
+            wt = np.broadcast_to(wt[..., None] if wt.ndim == 2 else wt,
+                                 (scene.height, scene.width, 3))
+            w = w * wt.reshape(-1, 3)[renderer.pixel_index[rows]]
+        if noise_sigma is not None:
+            w = w / noise_sigma
+        w = np.where(usable, w, 0.0)
+        steps = max_steps or MAX_STEPS.get(solver, DEFAULT_MAX_STEPS)
+        geometry = renderer.geometry.subset(rows)._replace(pixel_index=None,
+                                                           background_image=None)
+        return cls(material, renderer, geometry, rows, n_dropped,
+                   np.where(usable, picked, 0.0), w,
+                   init_full, blocks, loss,
+                   loss_scale if loss_scale is not None else (1.0 if noise_sigma else 0.01),
+                   noise_sigma, dtype,
+                   dict(solver_name=solver, rtol=rtol, atol=atol, max_steps=steps))
+
+    def cast(self, a):
+        return jnp.asarray(a, dtype=self.dtype)
+
+    @property
+    def spec(self) -> Spec:
+        return Spec(self.material, self.renderer.env_type, self.blocks, self.loss,
+                    self.loss_scale)
+
+    def data(self, b: int | None) -> Data:
+        """Arrays of target ``b`` (all targets stacked if None)."""
+        free = {blk.key for blk in self.blocks}
+        fixed = {k: self.cast(v) for k, v in self.init_full.items() if k not in free}
+        sel = slice(None) if b is None else b
+        return Data(self.geometry, self.renderer.env, self.renderer.sphere,
+                    self.cast(self.targets[sel]), self.cast(self.weights[sel]), fixed)
+
+    def z_init(self):
+        return z_from_params(self.spec, self.init_full)
+
+    def hold(self, keys, reasons):
+        self.unidentifiable += list(keys)
+        self.warnings += list(reasons)
+        self.blocks = tuple(b for b in self.blocks if b.key not in keys)
+
+    def hold_dead_columns(self) -> FitResult | None:
+        """Hold parameters the fitted pixels do not depend on at the start.
+
+        The Jacobian does not depend on the target, so one check serves a batch.
+        Returns a failed result if nothing is left to fit.
+        """
+        J0, _, tc = _jac_res(self.spec, self.z_init(), self.data(0))
+        self.t_compile += tc
+        norms = np.linalg.norm(J0, axis=0)
+        dead = _blocks_of(self.spec, norms <= ZERO_COLUMN * max(norms.max(), 1e-300))
+        self.hold(dead, [f"{k} does not change the fitted pixels at the start (zero "
+                         f"Jacobian column); held at {_fmt(self.init_full[k])}" for k in dead])
+        if not self.blocks:
+            return _all_held(self.init_full, self.unidentifiable, self.warnings, self.rows.size,
+                             self.n_dropped, self.t_compile, 0.0)
+        return None
+
+    def finish(self, b, z, code, iters, cost, identifiability, t_start, starts,
+               refit=True) -> FitResult | None:
+        """Check, refit without unidentifiable parameters, and report target ``b``.
+
+        With ``refit=False`` an unidentifiable parameter at the solution
+        returns None (the caller refits).
+        """
+        spec, data = self.spec, self.data(b)
+        J, r, tc = _jac_res(spec, z, data)
+        self.t_compile += tc
+        warnings, unidentifiable = list(self.warnings), list(self.unidentifiable)
+        if identifiability and np.isfinite(cost):
+            held = _unidentifiable_at(spec, z, J, r, self.noise_sigma)
+            if held and not refit:
+                return None
+            if held:
+                keys, reasons = held
+                best = _user(spec, z, data)
+                self.hold(keys, reasons)
+                warnings, unidentifiable = list(self.warnings), list(self.unidentifiable)
+                if not self.blocks:
+                    return _all_held(self.init_full, unidentifiable, warnings, self.rows.size,
+                                     self.n_dropped, self.t_compile,
+                                     time.perf_counter() - t_start - self.t_compile)
+                spec, data = self.spec, self.data(b)
+                start = {**self.init_full, **{k: v for k, v in best.items() if k not in keys}}
+                z1 = self.cast(z_from_params(spec, start)[None])
+                solve, tc = _compiled("solve", spec, (z1, data), **self.static)
+                self.t_compile += tc
+                zs, codes, nsteps, costs = (np.asarray(a) for a in solve(z1, data))
+                z, code, cost, iters = zs[0], int(codes[0]), float(costs[0]), iters + int(nsteps[0])
+                J, r, tc = _jac_res(spec, z, data)
+                self.t_compile += tc
+        return self._report(spec, data, z, code, iters, cost, J, r, warnings, unidentifiable,
+                            t_start, starts)
+
+    def _report(self, spec, data, z, code, iters, cost, J, r, warnings, unidentifiable,
+                t_start, starts) -> FitResult:
+        status = _status(code, z, cost)
+        message = optx.RESULTS._index_to_message[code] or "solver tolerances met"
+        n_obs = int(np.count_nonzero(np.asarray(data.weights)))
+        dof = max(n_obs - spec.n, 1)
+        chi2 = float(r @ r)
+        s2 = 1.0 if self.noise_sigma is not None else chi2 / dof
+        if self.noise_sigma is not None and status == "converged" and chi2 / dof > MAX_REDUCED_CHI2:
+            status = "failed"
+            message = (f"poor fit: chi^2/dof = {chi2 / dof:.3g} > {MAX_REDUCED_CHI2} for the "
+                       "given noise_sigma (a local minimum or a model that cannot explain the "
+                       "image; try n_starts > 1)")
+        cov_z = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
+        if not np.all(np.isfinite(cov_z)):
+            cov_z = np.zeros_like(cov_z)
+            status, message = "failed", "the covariance is not finite (the solution is not finite)"
+        params = _user(spec, z, data)
+        dxdz = np.concatenate([np.atleast_1d(np.asarray(
+            transforms.derivative(blk.transform, jnp.asarray(z[sl]), blk.lower, blk.upper)))
+            for blk, sl in spec.slices()])
+        sd = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * dxdz
+        stderr, coords = {}, []
+        for blk, sl in spec.slices():
+            stderr[blk.key] = sd[sl] if blk.size == 3 else float(sd[sl][0])
+            coords += [blk.key] if blk.size == 1 else [f"{blk.key}[{i}]" for i in range(3)]
+            u = (np.asarray(params[blk.key]) - blk.lower) / (blk.upper - blk.lower)
+            if np.any((u < AT_BOUND) | (u > 1 - AT_BOUND)):
+                warnings.append(f"{blk.key} = {_fmt(params[blk.key])} is at the bound of "
+                                f"[{blk.lower:g}, {blk.upper:g}]; its standard error is not "
+                                "meaningful")
+        d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
+        corr = cov_z / np.outer(d, d)
+        model = np.asarray(render_active(
+            {k: self.cast(v) for k, v in params.items()}, data.geometry, data.env, data.sphere,
+            material=spec.material, env_type=spec.env_type))
+        used = np.asarray(data.weights) > 0
+        err = np.where(used, model - np.asarray(data.target), 0.0)
+        rmse = np.sqrt(np.sum(err**2, axis=0) / np.maximum(used.sum(axis=0), 1))
+        total = time.perf_counter() - t_start
+        return FitResult(
+            params={k: (np.asarray(params[k]) if np.size(params[k]) > 1 else float(params[k]))
+                    for k in spec.material.param_specs()},
+            stderr=stderr, free=[blk.key for blk in spec.blocks], unidentifiable=unidentifiable,
+            correlation=corr, coordinates=coords, status=status, message=message,
+            iterations=iters, cost=cost, image_rmse=rmse, n_pixels=int(self.rows.size),
+            n_excluded=self.n_dropped + int(np.sum(~used.all(axis=-1))),
+            time_compile=self.t_compile, time_run=max(total - self.t_compile, 0.0),
+            warnings=warnings, starts=starts)
 
 
 def _fmt(v) -> str:
