@@ -35,7 +35,7 @@ def _radiance(p, opts, hit, env):
     out = f0[..., None] * env(reflect(d, n))
 
     t, _ = refract(d, n, eta)
-    weight = ((1.0 - f0) * radiance_scale(eta))[..., None] * jnp.ones(3)
+    weight = ((1.0 - f0) * radiance_scale(eta))[..., None] * jnp.ones(3, dtype=f0.dtype)
 
     def crossing(carry, _):
         out, weight, pos, t = carry
