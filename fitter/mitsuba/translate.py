@@ -79,8 +79,8 @@ def medium_dict(attenuation) -> dict | None:
     largest channel goes into ``scale``. None when nothing is absorbed.
     """
     c = np.broadcast_to(np.asarray(attenuation, dtype=np.float64), 3)
-    sigma = np.minimum(-np.log(np.maximum(c, math.exp(-SIGMA_T_MAX))), SIGMA_T_MAX)
-    sigma = np.maximum(sigma, 0.0)
+    sigma = np.where(c > 0, -np.log(np.where(c > 0, c, 1.0)), SIGMA_T_MAX)
+    sigma = np.clip(sigma, 0.0, SIGMA_T_MAX)
     scale = float(sigma.max())
     if scale == 0.0:
         return None
