@@ -198,3 +198,27 @@ def test_compare_mask_and_clipping():
     assert m["delta_e2000_max"] == EXACT and abs(m["rmse"] - 2.0) < CLOSE
     with pytest.raises(ValueError, match="mask"):
         compare(target, image, np.zeros((2, 2), bool))
+
+
+OLD_LLVM = "/usr/lib/x86_64-linux-gnu/libLLVM-15.so"
+
+
+@pytest.mark.skipif(not os.path.exists(OLD_LLVM), reason="needs an LLVM 15 library to load")
+def test_old_llvm_is_a_clear_error_not_an_abort():
+    # drjit with LLVM 15 aborts the process on roughconductor kernels
+    # ("LLVM ERROR: Cannot select ... fmaximum"); we must stop before that.
+    import subprocess
+    import sys
+
+    code = ("import fitter, fitter.mitsuba as fm\n"
+            "sc = fitter.Scene(width=8, height=8, lights=(fitter.PointLight((3., 4., 5.), "
+            "(50., 50., 50.)),))\n"
+            "m = fitter.Material.make('torrance_sparrow', {'torrance_sparrow.geometry': 'smith'})\n"
+            "try:\n    fm.render(sc, m, {}, spp=4)\n"
+            "except fm.MitsubaError as e:\n    print('MitsubaError:', e)\n")
+    env = {**os.environ, "DRJIT_LIBLLVM_PATH": OLD_LLVM, _variant.ENV_VAR: "llvm_ad_rgb"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-500:]
+    assert "MitsubaError: drjit loaded LLVM 15" in out.stdout
+    assert "apt-get install -y libllvm19" in out.stdout
