@@ -3,7 +3,7 @@
 All classes are frozen, hashable dataclasses of plain Python numbers and
 tuples, so a scene can key a compilation cache. Conventions follow Mitsuba 3
 so that a scene maps 1:1 onto a Mitsuba scene dict (see
-``fitter.mitsuba_scene``):
+``fitter.mitsuba.scene_dict``):
 
 * world units are arbitrary but shared by positions, the radius and the
   Beer-Lambert path length;
