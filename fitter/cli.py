@@ -529,7 +529,8 @@ def cmd_synth(args) -> int:
     try:
         with log.stage(f"rendering {job.name} with Mitsuba ({spp} spp)"):
             synth.write_case(tmp, job.scene, job.material, params, spp=spp, seed=seed,
-                             base_dir=job.base_dir, extra={"config": job.path})
+                             base_dir=job.base_dir, extra={"config": job.path},
+                             paths_relative_to=out)
         for name in sorted(os.listdir(tmp)):
             os.replace(os.path.join(tmp, name), os.path.join(out, name))
     finally:

@@ -222,3 +222,16 @@ def test_old_llvm_is_a_clear_error_not_an_abort():
     assert out.returncode == 0, out.stderr[-500:]
     assert "MitsubaError: drjit loaded LLVM 15" in out.stdout
     assert "apt-get install -y libllvm19" in out.stdout
+
+
+@pytest.mark.mitsuba
+def test_case_json_envmap_path_is_relative_to_the_final_folder(tmp_path):
+    make_envmap(str(tmp_path / "env.exr"))
+    scene = SCENE.replace(lights=(), environment=fitter.Environment(type="envmap",
+                                                                    file="env.exr"))
+    final = tmp_path / "cases" / "m"
+    write_case(str(final / ".stage"), scene, fitter.Material.make("mirror"), {}, spp=4, seed=0,
+               base_dir=str(tmp_path), paths_relative_to=str(final))
+    data = json.loads((final / ".stage" / "case.json").read_text())
+    assert data["scene"]["environment"]["file"] == "../../env.exr"
+    assert (final / data["scene"]["environment"]["file"]).resolve() == (tmp_path / "env.exr")

@@ -69,12 +69,13 @@ def _env_for_json(scene: Scene, out_dir: str, base_dir: str | None) -> Scene:
 
 def write_case(out_dir: str, scene: Scene, material: Material, params, *, spp: int, seed: int,
                variant: str | None = None, base_dir: str | None = None,
-               extra: dict | None = None) -> dict:
+               extra: dict | None = None, paths_relative_to: str | None = None) -> dict:
     """Render the case with Mitsuba and write it to ``out_dir``; returns the case dict.
 
     ``case.json`` holds ``scene`` and ``material`` in the config layout
     (``fitter.config.scene_to_dict`` / ``material_to_dict``; an envmap path
-    relative to ``out_dir``), the full true parameters (``truth``, defaults
+    relative to ``paths_relative_to``, default ``out_dir``: pass the final
+    folder when writing into a staging folder first), the full true parameters (``truth``, defaults
     included), ``mitsuba`` (version, variant, spp, seed, integrator,
     sampler) and ``extra``. Render time is returned, not written, so the
     files are reproducible.
@@ -90,7 +91,8 @@ def write_case(out_dir: str, scene: Scene, material: Material, params, *, spp: i
     seconds = time.perf_counter() - t0
     mi, used = load(variant)
     case = {
-        "scene": config.scene_to_dict(_env_for_json(scene, out_dir, base_dir)),
+        "scene": config.scene_to_dict(_env_for_json(scene, paths_relative_to or out_dir,
+                                                    base_dir)),
         "material": config.material_to_dict(material, truth=truth),
         "truth": truth,
         "mitsuba": {"version": mi.__version__, "variant": used, "spp": stratified_spp(spp),
