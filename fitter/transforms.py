@@ -42,15 +42,15 @@ def to_user(kind: str, z, lo: float, hi: float):
     return lo + (hi - lo) * s
 
 
-def to_unconstrained(kind: str, x, lo: float, hi: float):
-    """Coordinate z(x) (NumPy); x is clipped EDGE inside [lo, hi]."""
+def to_unconstrained(kind: str, x, lo: float, hi: float, margin: float = EDGE):
+    """Coordinate z(x) (NumPy); x is moved ``margin`` of the range inside [lo, hi]."""
     x = np.asarray(x, dtype=np.float64)
     if _is_log(kind):
         a, b = np.log(lo), np.log(hi)
         u = (np.log(np.maximum(x, lo)) - a) / (b - a)
     else:
         u = (x - lo) / (hi - lo)
-    u = np.clip(u, EDGE, 1.0 - EDGE)
+    u = np.clip(u, margin, 1.0 - margin)
     return np.log(u) - np.log1p(-u)
 
 
@@ -62,3 +62,17 @@ def derivative(kind: str, z, lo: float, hi: float):
         a, b = np.log(lo), np.log(hi)
         return jnp.exp(a + (b - a) * s) * (b - a) * ds
     return (hi - lo) * ds
+
+
+def natural_scale(kind: str, x, lo: float, hi: float):
+    """How far a parameter can move across its box, in user units, at ``x``.
+
+    (hi - lo) for the linear boxes, x * log(hi / lo) for the log box (whose
+    natural steps are relative). Multiplying a Jacobian column in user units
+    by it says how much the image can change through that parameter,
+    whatever the current coordinate.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    if _is_log(kind):
+        return x * np.log(hi / lo)
+    return np.full_like(x, hi - lo)

@@ -98,3 +98,14 @@ def test_bad_arguments_are_clear_errors():
         fitter.fit(target, SCENE, "lambert", init={"lambert.rho_d": 1.5})
     with pytest.raises(fitter.MaterialError, match="unknown lobe"):
         fitter.fit(target, SCENE, "lambertian")
+
+
+def test_default_starts_on_the_box_edge_are_fitted_not_held():
+    # mirror.rho_m and dielectric.attenuation default to 1, the edge of [0, 1]:
+    # a saturated coordinate must not be mistaken for a parameter without effect.
+    scene = SCENE.replace(environment=fitter.Environment("constant", (0.8, 0.6, 0.4)))
+    truth = {"mirror.rho_m": [0.9, 0.5, 0.3]}
+    target = np.asarray(fitter.render(truth, scene))
+    r = fitter.fit(target, scene, "mirror")
+    assert r.unidentifiable == [] and r.status == "converged"
+    np.testing.assert_allclose(r.params["mirror.rho_m"], truth["mirror.rho_m"], rtol=1e-6)

@@ -39,6 +39,10 @@ MAX_Z_STDERR = 3.0
 AT_BOUND = 1e-4
 #: With a known noise sigma, chi^2 per degree of freedom above this fails the fit.
 MAX_REDUCED_CHI2 = 2.0
+#: Starts on a box edge (e.g. the default attenuation 1) are moved this fraction
+#: of the range inside: on the edge the coordinate is saturated and the
+#: Jacobian column vanishes.
+START_MARGIN = 1e-2
 #: Default step budgets.
 MAX_STEPS = {"adam": 5000, "bfgs": 1000}
 DEFAULT_MAX_STEPS = 200
@@ -381,7 +385,7 @@ class _Job:
                     self.cast(self.targets[sel]), self.cast(self.weights[sel]), fixed)
 
     def z_init(self):
-        return z_from_params(self.spec, self.init_full)
+        return z_from_params(self.spec, self.init_full, START_MARGIN)
 
     def hold(self, keys, reasons):
         self.unidentifiable += list(keys)
@@ -394,10 +398,10 @@ class _Job:
         The Jacobian does not depend on the target, so one check serves a batch.
         Returns a failed result if nothing is left to fit.
         """
-        J0, _, tc = _jac_res(self.spec, self.z_init(), self.data(0))
+        z0 = self.z_init()
+        J0, _, tc = _jac_res(self.spec, z0, self.data(0))
         self.t_compile += tc
-        norms = np.linalg.norm(J0, axis=0)
-        dead = _blocks_of(self.spec, norms <= ZERO_COLUMN * max(norms.max(), 1e-300))
+        dead = _blocks_of(self.spec, _dead_columns(self.spec, z0, J0))
         self.hold(dead, [f"{k} does not change the fitted pixels at the start (zero "
                          f"Jacobian column); held at {_fmt(self.init_full[k])}" for k in dead])
         if not self.blocks:
@@ -431,7 +435,7 @@ class _Job:
                                      time.perf_counter() - t_start - self.t_compile)
                 spec, data = self.spec, self.data(b)
                 start = {**self.init_full, **{k: v for k, v in best.items() if k not in keys}}
-                z1 = self.cast(z_from_params(spec, start)[None])
+                z1 = self.cast(z_from_params(spec, start, START_MARGIN)[None])
                 solve, tc = _compiled("solve", spec, (z1, data), **self.static)
                 self.t_compile += tc
                 zs, codes, nsteps, costs = (np.asarray(a) for a in solve(z1, data))
@@ -531,13 +535,31 @@ def _jac_res(spec, z, data):
     return np.asarray(J), np.asarray(r), tc
 
 
+def _dead_columns(spec: Spec, z, J) -> np.ndarray:
+    """Coordinates whose parameter cannot change the fitted pixels (bool (n,)).
+
+    Each column is measured in user units times the parameter's natural scale
+    (``transforms.natural_scale``), so a coordinate saturated near a box edge
+    is not mistaken for a parameter without effect.
+    """
+    z = np.asarray(z)
+    effect = np.zeros(J.shape[1])
+    for b, sl in spec.slices():
+        zb = jnp.asarray(z[sl])
+        x = np.asarray(transforms.to_user(b.transform, zb, b.lower, b.upper))
+        dxdz = np.asarray(transforms.derivative(b.transform, zb, b.lower, b.upper))
+        scale = transforms.natural_scale(b.transform, x, b.lower, b.upper)
+        effect[sl] = np.linalg.norm(J[:, sl], axis=0) / np.maximum(dxdz, 1e-300) * scale
+    return effect <= ZERO_COLUMN * max(effect.max(), 1e-300)
+
+
 def _unidentifiable_at(spec, z, J, r, noise_sigma):
     """Blocks without usable information at ``z``: (keys, reasons) or None."""
     keys, reasons = [], []
     if not np.all(np.isfinite(J)):
         return None
     norms = np.linalg.norm(J, axis=0)
-    dead = norms <= ZERO_COLUMN * max(norms.max(), 1e-300)
+    dead = _dead_columns(spec, z, J)
     for k in _blocks_of(spec, dead):
         keys.append(k)
         reasons.append(f"{k} does not change the fitted pixels at the solution; held at its "

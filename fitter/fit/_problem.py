@@ -73,11 +73,14 @@ def params_from_z(spec: Spec, z, fixed: dict) -> dict:
     return params
 
 
-def z_from_params(spec: Spec, params: dict):
+def z_from_params(spec: Spec, params: dict, margin: float = transforms.EDGE):
+    """Coordinates (n,) of user values; values nearer than ``margin`` (fraction of
+    the range) to a box edge are moved inside."""
     import numpy as np
 
     return np.concatenate([
-        np.atleast_1d(transforms.to_unconstrained(b.transform, params[b.key], b.lower, b.upper))
+        np.atleast_1d(transforms.to_unconstrained(b.transform, params[b.key], b.lower, b.upper,
+                                                  margin))
         for b in spec.blocks]) if spec.blocks else np.zeros(0)
 
 
