@@ -53,6 +53,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse printed usage and the reason
         return EXIT_OK if exc.code == 0 else EXIT_INPUT
+    _enable_compilation_cache()
     try:
         with _sigterm_as_interrupt():
             return args.run(args)
@@ -64,6 +65,26 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"fitter: error: {exc}", file=sys.stderr)
             return EXIT_INPUT
         raise
+
+
+def _enable_compilation_cache() -> None:
+    """Keep compiled solvers on disk, so a repeated job skips XLA compilation.
+
+    Folder: ``$FITTER_CACHE_DIR``, else ``$XDG_CACHE_HOME/fitter/jax`` (default
+    ``~/.cache/fitter/jax``); ``FITTER_CACHE_DIR=""`` turns it off.
+    """
+    import os
+
+    folder = os.environ.get("FITTER_CACHE_DIR")
+    if folder is None:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        folder = os.path.join(base, "fitter", "jax")
+    if not folder:
+        return
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
 
 @contextlib.contextmanager
