@@ -135,11 +135,12 @@ def unit_from_cos(c, phi):
     return np.array([s * np.cos(phi), s * np.sin(phi), c])
 
 
-#: Smallest non-zero |cos| drawn. Below ~1e-75 squares and fourth powers of
-#: cosines underflow (cos_h^4, (n.H)^2, cos_i cos_o) and the microfacet lobe
-#: divides by 0; geometry never yields such values except exactly 0, which is
-#: drawn (see the report of the forward-model test suite).
-MIN_COS = 1e-30
+#: Smallest non-zero |cos| drawn (exact 0 is drawn too). Below ~1e-154 the
+#: product cos_i cos_o underflows to 0 and the Torrance-Sparrow value
+#: D G F / (pi cos_i cos_o), which truly grows without bound as both
+#: cosines -> 0 (retro-grazing pairs), overflows. Camera/light geometry never
+#: yields such cosines except exactly 0.
+MIN_COS = 1e-150
 COS = st.one_of(st.sampled_from([0.0, 1.0, -0.0, MIN_COS, 1e-12, 1.0 - 1e-16, -1.0]),
                 st.floats(-1.0, 1.0).filter(lambda c: c == 0.0 or abs(c) >= MIN_COS))
 PHI = st.one_of(st.sampled_from([0.0, np.pi]), st.floats(0.0, 2 * np.pi))

@@ -37,10 +37,13 @@ def beckmann_d_lecture(cos_h, tan2_h, m):
     D_n G F / (4 cos_i cos_o).
     """
     m = jnp.maximum(m, M_MIN)
-    up = cos_h > 0
     m2 = m * m
-    cos4 = cos_h**4
-    return jnp.where(up, jnp.exp(-tan2_h / m2) * safe_div(1.0, 4.0 * m2 * cos4, up), 0.0)
+    # exp(-746) is 0 in float64, so D is exactly 0 beyond; and 1/cos^4 is
+    # written (1 + tan^2)^2: cos_h^4 underflows (its gradient overflows) at
+    # grazing half vectors.
+    up = (cos_h > 0) & (tan2_h < 746.0 * m2)
+    tan2 = jnp.where(up, tan2_h, 0.0)
+    return jnp.where(up, jnp.exp(-tan2 / m2) * (1.0 + tan2) ** 2 / (4.0 * m2), 0.0)
 
 
 def g_v_groove(cos_h, cos_i, cos_o, wo_h):
