@@ -32,8 +32,10 @@ SCENE = fitter.Scene(
 CASES = {
     "lambert": ({}, {"lambert.rho_d": [0.6, 0.4, 0.2]}),
     "oren_nayar": ({}, {"oren_nayar.rho_d": [0.5, 0.6, 0.7], "oren_nayar.sigma": 0.4}),
-    "phong-lecture": ({"phong.normalized": False}, {"phong.rho_s": [0.3, 0.4, 0.5], "phong.e": 25.0}),
-    "phong-normalized": ({"phong.normalized": True}, {"phong.rho_s": [0.3, 0.4, 0.5], "phong.e": 25.0}),
+    "phong-lecture": ({"phong.normalized": False}, {"phong.rho_s": [0.3, 0.4, 0.5],
+                                                    "phong.e": 25.0}),
+    "phong-normalized": ({"phong.normalized": True}, {"phong.rho_s": [0.3, 0.4, 0.5],
+                                                      "phong.e": 25.0}),
     "torrance_sparrow-v_groove": ({"torrance_sparrow.geometry": "v_groove"},
                                   {"torrance_sparrow.m": 0.25, "torrance_sparrow.eta": 1.6,
                                    "torrance_sparrow.rho_s": 0.8}),

@@ -23,7 +23,7 @@ import pytest
 from scipy import integrate
 
 import fitter
-from fitter.environment import EnvData, direction_to_uv, lookup
+from fitter.environment import direction_to_uv, lookup
 
 #: float64 agreement of two evaluations of the same closed form.
 EXACT = 1e-12
@@ -131,8 +131,8 @@ def disc_area_in_box(r, x0, x1, y0, y1):
     a, b = max(x0, -r), min(x1, r)
     if a >= b:
         return 0.0
-    brk = [p for y in (y0, y1) if abs(y) < r for p in (-np.sqrt(r * r - y * y), np.sqrt(r * r - y * y))
-           if a < p < b]
+    cuts = [np.sqrt(r * r - y * y) for y in (y0, y1) if abs(y) < r]  # circle meets y0, y1
+    brk = [p for c in cuts for p in (-c, c) if a < p < b]
     val, _ = integrate.quad(height, a, b, points=brk or None, epsabs=1e-13, epsrel=1e-12, limit=200)
     return val
 
@@ -180,10 +180,11 @@ def silhouette_coverage_rms(k):
             if 0.0 < exact < 1.0:
                 errors.append(coverage[i, j] - exact)
     errors = np.asarray(errors)
-    print(f"k={k}: silhouette pixels {errors.size}, coverage error RMS {np.sqrt(np.mean(errors**2)):.2e},"
+    rms = np.sqrt(np.mean(errors**2))
+    print(f"k={k}: silhouette pixels {errors.size}, coverage error RMS {rms:.2e},"
           f" max {np.abs(errors).max():.2e}, whole-disc area error "
           f"{abs(coverage.sum() * pix_area - np.pi * r * r) / (np.pi * r * r):.2e} (relative)")
-    return np.sqrt(np.mean(errors**2))
+    return rms
 
 
 def test_silhouette_error_falls_with_supersampling():
