@@ -1,0 +1,276 @@
+"""Error against run time for one (case, resolution, method): the worker of ``fitter bench``.
+
+Sampling along the optimization: each method is driven step by step and the
+parameters are recorded after every iteration, with the wall-clock time spent
+in the solver so far (recording excluded, compile excluded and reported
+separately):
+
+* JAX methods (the project's solvers): the same optimistix solver, residuals
+  and coordinates as ``fitter.fit`` (``fitter.fit._problem``,
+  ``fitter.fit._solvers``), driven by ``solver.init`` / ``solver.step`` /
+  ``solver.terminate`` each jit-compiled once -- the loop body of
+  ``optimistix.least_squares``, dispatched from Python once per step. The
+  product's own figures (``fitter.fit`` cold: compile + run; warm: run) are
+  measured in the same process.
+* scipy (baseline A): ``least_squares``'s per-iteration ``callback``.
+* Mitsuba (baseline B): one record per Adam iteration.
+
+Errors are recorded against the case's truth; the image RMSE of every sample
+is computed afterwards with the JAX forward model at the recorded parameters
+over the fitted (interior) pixels, so the metric is the same for every method.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+#: Cases: the shipped Mitsuba case (``fitter.mitsuba.cases``) and the common start.
+CASES = {
+    "lambert": {"init": {"lambert.rho_d": [0.5, 0.5, 0.5]}},
+    "oren_nayar": {"init": {"oren_nayar.rho_d": [0.3, 0.3, 0.3], "oren_nayar.sigma": 0.2}},
+    "phong": {"init": {"phong.rho_s": [0.5, 0.5, 0.5], "phong.e": 20.0}},
+    "torrance_sparrow": {"init": {"torrance_sparrow.m": 0.4, "torrance_sparrow.eta": 1.3}},
+    "mirror": {"init": {"mirror.rho_m": [0.5, 0.5, 0.5]}},
+    "plastic": {"init": {"lambert.rho_d": [0.5, 0.5, 0.5], "torrance_sparrow.m": 0.3,
+                         "torrance_sparrow.eta": 1.3}},
+    "oren_nayar_phong": {"init": {"oren_nayar.rho_d": [0.5, 0.5, 0.5], "oren_nayar.sigma": 0.1,
+                                  "phong.rho_s": [0.5, 0.5, 0.5], "phong.e": 40.0}},
+    "dielectric": {"init": {"dielectric.eta": 1.3, "dielectric.attenuation": [0.5, 0.5, 0.5]}},
+}
+#: Methods: the project's solvers and the two baselines.
+JAX_METHODS = {"lm": "levenberg_marquardt", "dogleg": "dogleg", "bfgs": "bfgs", "adam": "adam"}
+BASELINES = ("scipy", "mitsuba")
+#: Baselines port only this material (lambert + torrance_sparrow, Smith G).
+BASELINE_CASE = "plastic"
+#: Relative error floor: a parameter whose truth is below it is compared absolutely.
+REL_FLOOR = 1e-3
+RTOL, ATOL = 1e-8, 1e-10
+TRACE_STEPS = {"lm": 100, "dogleg": 100, "bfgs": 400, "adam": 1500}
+
+
+def repo_root() -> str:
+    return os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def load_job(case: str, res: int):
+    """(job, base_dir) of a shipped case at ``res`` x ``res``."""
+    from fitter.config import job_from_dict
+    from fitter.mitsuba.cases import CASES as SHIPPED
+
+    base = os.path.join(repo_root(), "data_synthetic", case)
+    job = job_from_dict(SHIPPED[case], base_dir=base)
+    return job.replace(scene=job.scene.replace(width=res, height=res)), base
+
+
+def errors(x: dict, truth: dict, keys) -> dict:
+    """``{coordinate: (value, truth, abs err, rel err)}`` of the free parameters."""
+    out = {}
+    for k in keys:
+        v, t = np.atleast_1d(np.asarray(x[k], float)), np.atleast_1d(np.asarray(truth[k], float))
+        for i in range(v.size):
+            name = k if v.size == 1 else f"{k}[{i}]"
+            a = abs(v[i] - t[i])
+            out[name] = (float(v[i]), float(t[i]), float(a), float(a / max(abs(t[i]), REL_FLOOR)))
+    return out
+
+
+def _vec_to_params(x):
+    return {"lambert.rho_d": x[:3], "torrance_sparrow.m": x[3], "torrance_sparrow.eta": x[4]}
+
+
+def _params_to_vec(p):
+    return np.concatenate([np.asarray(p["lambert.rho_d"], float).reshape(3),
+                           [float(p["torrance_sparrow.m"]), float(p["torrance_sparrow.eta"])]])
+
+
+class _Problem:
+    """The fit problem exactly as ``fitter.fit`` sets it up (interior pixels, l2)."""
+
+    def __init__(self, job, base, target, init):
+        import jax.numpy as jnp
+
+        from fitter.fit import select_pixels
+        from fitter.fit._problem import Block, Data, Spec
+        from fitter.render import _renderer
+
+        mat = job.material
+        self.renderer = _renderer(job.scene, mat, jnp.dtype(jnp.float64), base)
+        rows, _, flat = select_pixels(self.renderer, target, "interior", None, None)
+        specs = mat.param_specs()
+        self.free = [k for k, s in specs.items() if s.free and k not in job.fixed]
+        blocks = tuple(Block(k, specs[k].size, specs[k].transform, specs[k].lower,
+                             specs[k].upper) for k in self.free)
+        self.init_full = mat.full_params({**init, **job.fixed})
+        fixed = {k: jnp.asarray(v) for k, v in self.init_full.items() if k not in self.free}
+        geo = self.renderer.geometry.subset(rows)._replace(pixel_index=None,
+                                                           background_image=None)
+        self.spec = Spec(mat, self.renderer.env_type, blocks, "l2", 0.01)
+        self.data = Data(geo, self.renderer.env, self.renderer.sphere,
+                         jnp.asarray(flat[rows]), jnp.ones((rows.size, 3)), fixed)
+        self.n_pixels = int(rows.size)
+
+    def z0(self):
+        from fitter.fit._problem import z_from_params
+
+        return z_from_params(self.spec, self.init_full)
+
+    def params(self, z):
+        import jax.numpy as jnp
+
+        from fitter.fit._problem import params_from_z
+
+        p = params_from_z(self.spec, jnp.asarray(z), self.data.fixed)
+        return {k: np.asarray(v) for k, v in p.items()}
+
+    def rmse_fn(self):
+        """Jitted (complete params) -> RMSE over the fitted pixels."""
+        import jax
+        import jax.numpy as jnp
+
+        from fitter.render import render_active
+
+        spec, data = self.spec, self.data
+
+        @jax.jit
+        def f(params):
+            m = render_active(params, data.geometry, data.env, data.sphere,
+                              material=spec.material, env_type=spec.env_type)
+            return jnp.sqrt(jnp.mean((m - data.target) ** 2))
+
+        return lambda p: float(f({k: jnp.asarray(v) for k, v in p.items()}))
+
+
+def stepper(problem: _Problem, solver_name: str):
+    """(init(z) -> state, step(z, state) -> (z, state, done), compile seconds)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import optimistix as optx
+
+    from fitter.fit._problem import residuals
+    from fitter.fit._solvers import make_solver
+
+    spec, data = problem.spec, problem.data
+    solver = make_solver(solver_name, RTOL, ATOL)
+    scalar = isinstance(solver, optx.AbstractMinimiser)
+
+    def fn(z, d):
+        r = residuals(z, d, spec)
+        return (0.5 * jnp.sum(r * r) if scalar else r), None
+
+    tags = frozenset()
+    z0 = jnp.asarray(problem.z0())
+    f_struct = jax.eval_shape(lambda z: fn(z, data)[0], z0)
+    init = eqx.filter_jit(lambda z, d: solver.init(fn, z, d, {}, f_struct, None, tags))
+    t0 = time.perf_counter()
+    state0 = init(z0, data)
+    jax.block_until_ready(eqx.filter(state0, eqx.is_array))
+    dyn0, static = eqx.partition(state0, eqx.is_array)
+
+    @jax.jit
+    def step(z, dyn, d):
+        state = eqx.combine(static, dyn)
+        z2, state2, _ = solver.step(fn, z, d, {}, state, tags)
+        done, result = solver.terminate(fn, z, d, {}, state2, tags)
+        done = done | (result != optx.RESULTS.successful) | ~jnp.all(jnp.isfinite(z2))
+        return z2, eqx.filter(state2, eqx.is_array), done
+
+    jax.block_until_ready(step(z0, dyn0, data))
+    compile_s = time.perf_counter() - t0
+
+    def run_init(z):
+        return eqx.filter(init(z, data), eqx.is_array)
+
+    return run_init, lambda z, dyn: step(z, dyn, data), compile_s
+
+
+def run_jax(method, job, base, target, init, max_steps):
+    """Product figures (``fitter.fit`` cold, warm) and the step trace."""
+    import jax
+
+    import fitter
+
+    solver = JAX_METHODS[method]
+    kw = dict(init=init, fixed=job.fixed, solver=solver, base_dir=base)
+    cold = fitter.fit(target, job.scene, job.material, **kw)
+    warm = fitter.fit(target, job.scene, job.material, **kw)
+    prob = _Problem(job, base, target, init)
+    run_init, step, compile_s = stepper(prob, solver)
+    z = jax.numpy.asarray(prob.z0())
+    samples = [(0, 0.0, prob.params(z))]
+    t_run = 0.0
+    t0 = time.perf_counter()
+    dyn = run_init(z)
+    jax.block_until_ready(dyn)
+    t_run += time.perf_counter() - t0
+    for i in range(1, max_steps + 1):
+        t0 = time.perf_counter()
+        z, dyn, done = step(z, dyn)
+        done = bool(done)  # waits for the step
+        t_run += time.perf_counter() - t0
+        samples.append((i, t_run, prob.params(z)))
+        if done:
+            break
+    product = {"compile_s": cold.time_compile, "fit_cold_s": cold.time_compile + cold.time_run,
+               "fit_warm_s": warm.time_run, "iterations": warm.iterations,
+               "status": warm.status, "params": warm.to_dict()["params"]}
+    return prob, samples, compile_s, product
+
+
+def run_baseline(method, job, base, target, init, opts):
+    prob = _Problem(job, base, target, init)
+    x0 = _params_to_vec(prob.init_full)
+    samples = [(0, 0.0, prob.init_full)]
+    rec = lambda x, t: samples.append((len(samples), t, {**prob.init_full,  # noqa: E731
+                                                         **_vec_to_params(x)}))
+    if method == "scipy":
+        import baseline_scipy
+
+        # A first, untimed call pays NumPy/scipy's one-off costs (imports, caches).
+        baseline_scipy.fit(target, job.scene, x0, None, max_nfev=1)
+        _, secs, nfev, _ = baseline_scipy.fit(target, job.scene, x0, None, record=rec)
+        compile_s, extra = 0.0, {"nfev": int(nfev), "fit_warm_s": secs}
+    else:
+        import baseline_mitsuba
+
+        _, secs, first = baseline_mitsuba.fit(target, job.scene, x0, spp=opts["spp"],
+                                              lr=opts.get("lr", 0.02), iters=opts["iters"],
+                                              record=rec)
+        compile_s, extra = first, {"spp": opts["spp"], "lr": opts.get("lr", 0.02),
+                                   "fit_warm_s": secs}
+    return prob, samples, compile_s, extra
+
+
+def run(spec: dict) -> dict:
+    """One worker job: ``{"case", "res", "method", "target" (.npy), ...}`` -> result dict."""
+    import sys
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import fitter  # noqa: F401  (x64)
+
+    case, res, method = spec["case"], int(spec["res"]), spec["method"]
+    job, base = load_job(case, res)
+    target = np.load(spec["target"])
+    init = CASES[case]["init"]
+    t0 = time.perf_counter()
+    if method in JAX_METHODS:
+        prob, samples, compile_s, extra = run_jax(
+            method, job, base, target, init, spec.get("max_steps", TRACE_STEPS[method]))
+    else:
+        prob, samples, compile_s, extra = run_baseline(method, job, base, target, init, spec)
+    wall = time.perf_counter() - t0
+    rmse = prob.rmse_fn()
+    every = max(1, len(samples) // 200)  # keep at most ~200 image evaluations
+    trace = []
+    for j, (i, t, p) in enumerate(samples):
+        e = errors(p, job.truth, prob.free)
+        row = {"step": i, "time_s": t, "max_rel_err": max(v[3] for v in e.values()),
+               "errors": e}
+        if j % every == 0 or j == len(samples) - 1:
+            row["image_rmse"] = rmse(prob.renderer.params(p))
+        trace.append(row)
+    return {"case": case, "res": res, "method": method, "n_pixels": prob.n_pixels,
+            "compile_s": compile_s, "wall_s": wall, "trace": trace, **extra}
