@@ -201,3 +201,27 @@ def test_lossless_dielectric_sphere_conserves_radiance(eta):
         np.testing.assert_allclose(img, expected, rtol=1e-10)
     inner = img[hit & (cos_i > 0.2)]  # F < 0.6 there: F^65 < 1e-14
     np.testing.assert_allclose(inner, np.broadcast_to(L, inner.shape), rtol=EXACT)
+
+
+@pytest.mark.parametrize("eta", [1.33, 2.0])
+def test_absorbing_dielectric_sphere_series(eta):
+    """Refraction and Beer-Lambert together. On a sphere every internal chord has
+    the same length s = 2 r cos_t and every internal hit the same F as the
+    entry, so with T = c^s the traced sum is the geometric series
+    L (F + (1-F)^2 T (1 - (F T)^(B+1)) / (1 - F T))."""
+    L = np.array([1.0, 2.0, 3.0])
+    c = np.array([0.3, 0.6, 0.9])
+    r, bounces = 0.79, 5
+    scene = fitter.Scene(width=15, height=15, supersampling=1, camera=ORTHO,
+                         sphere=fitter.Sphere(radius=r),
+                         environment=fitter.Environment(type="constant", radiance=tuple(L)))
+    img = np.asarray(fitter.render({"dielectric.eta": eta, "dielectric.attenuation": c,
+                                    "dielectric.bounces": bounces}, scene))
+    hit, rho2 = _ortho_hits(scene)
+    cos_i = np.sqrt(np.where(hit, 1.0 - rho2 / r**2, 1.0))
+    Fr = fresnel_lecture(cos_i, eta)[..., None]
+    cos_t = np.sqrt(1.0 - (1.0 - cos_i**2) / eta**2)
+    T = c ** (2.0 * r * cos_t)[..., None]
+    series = Fr + (1 - Fr) ** 2 * T * (1 - (Fr * T) ** (bounces + 1)) / (1 - Fr * T)
+    expected = np.where(hit[..., None], L * series, L)
+    np.testing.assert_allclose(img, expected, rtol=1e-10)
