@@ -109,3 +109,17 @@ def test_default_starts_on_the_box_edge_are_fitted_not_held():
     r = fitter.fit(target, scene, "mirror")
     assert r.unidentifiable == [] and r.status == "converged"
     np.testing.assert_allclose(r.params["mirror.rho_m"], truth["mirror.rho_m"], rtol=1e-6)
+
+
+def test_a_model_that_cannot_explain_the_image_is_not_converged():
+    # Lambert alone fitted to a target with a strong Phong highlight: the solver
+    # meets its tolerances, but the residual is far above the target's noise
+    # level (Immerkaer estimate), so the fit must not be reported as converged.
+    truth = {"lambert.rho_d": [0.3, 0.3, 0.3], "phong.rho_s": 0.8, "phong.e": 20.0}
+    target = np.asarray(fitter.render(truth, SCENE))
+    r = fitter.fit(target, SCENE, "lambert")
+    assert r.status == "failed"
+    assert "noise level" in r.message
+    # The same check passes a fit of the right model.
+    good = fitter.fit(target, SCENE, "lambert+phong")
+    assert good.status == "converged"
