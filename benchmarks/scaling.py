@@ -9,6 +9,7 @@ error-vs-time runs at several resolutions.
 
 from __future__ import annotations
 
+import sys
 import time
 
 import numpy as np
@@ -50,7 +51,8 @@ def run(spec: dict) -> dict:
     truths = [{"lambert.rho_d": rng.uniform(0.2, 0.8, 3), "torrance_sparrow.m": rng.uniform(0.1, 0.4),
                "torrance_sparrow.eta": rng.uniform(1.3, 1.8)} for _ in range(nb)]
     targets = np.stack([np.asarray(fitter.render(t, scene, job.material)) for t in truths])
-    fit_batch = getattr(fitter, "fit_batch", None) or getattr(fitter.fit, "fit_batch", None)
+    fit_batch = (getattr(fitter, "fit_batch", None) or getattr(fitter.fit, "fit_batch", None)
+                 or getattr(sys.modules.get("fitter.fit._fit"), "fit_batch", None))
     fitter.fit(targets[0], scene, job.material, init=init, fixed=job.fixed)  # compile
     t0 = time.perf_counter()
     seq = [fitter.fit(t, scene, job.material, init=init, fixed=job.fixed) for t in targets]

@@ -20,7 +20,9 @@ Outcome of a fit (``classify``):
 * ``reported``: anything else (not converged, unidentifiable, or an error
   within its stated uncertainty): honest.
 
-Tolerance of a parameter: ``max(TOL_REL * |truth|, TOL_ABS)`` per coordinate.
+Tolerance of a parameter, per coordinate: ``TOL_REL * |truth|`` for the
+log-scaled ones (m, e: their scale is relative), ``max(TOL_REL * |truth|,
+TOL_ABS)`` for the others (reflectances, sigma, eta can be 0 or near 1).
 """
 
 from __future__ import annotations
@@ -163,6 +165,13 @@ def loss_gradients(scene, material, target, points, dtype) -> list[bool]:
     return out
 
 
+def _log_scaled(result, key: str) -> bool:
+    from fitter.bsdf import LOBES
+
+    lobe, name = key.split(".", 1)
+    return any(p.name == name and p.transform == "log" for p in LOBES[lobe].params)
+
+
 def classify(result, truth: dict) -> tuple[str, dict]:
     """(outcome, per-parameter detail) of a ``FitResult`` against the truth."""
     detail = {}
@@ -178,7 +187,8 @@ def classify(result, truth: dict) -> tuple[str, dict]:
         t = np.atleast_1d(np.asarray(truth[k], float))
         se = np.atleast_1d(np.asarray(result.stderr.get(k, np.nan), float))
         err = np.abs(v - t)
-        tol = np.maximum(TOL_REL * np.abs(t), TOL_ABS)
+        tol = TOL_REL * np.abs(t) if _log_scaled(result, k) else \
+            np.maximum(TOL_REL * np.abs(t), TOL_ABS)
         detail[k] = {"value": v.tolist(), "truth": t.tolist(), "abs_err": err.tolist(),
                      "stderr": se.tolist(), "tol": tol.tolist()}
         within &= bool(np.all(err <= tol))

@@ -50,7 +50,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        args = parser.parse_args(argv)
+        if argv[:1] == ["bench"]:  # REMAINDER does not take a leading "--option"
+            args = argparse.Namespace(rest=argv[1:], run=cmd_bench)
+        else:
+            args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse printed usage and the reason
         return EXIT_OK if exc.code == 0 else EXIT_INPUT
     _enable_compilation_cache()
