@@ -39,7 +39,7 @@ TOLERANCES = {"rho_d": (RHO_ABS, 0.0), "rho_s": (RHO_ABS, 0.0), "rho_m": (RHO_AB
               "eta": (ETA_ABS, 0.0), "attenuation": (ATTENUATION_ABS, 0.0)}
 #: Extreme cases: looser, stated tolerances (measured errors in the comments).
 EXTREME = {
-    # e = 2000: highlight ~2 pixels wide, 4 x 4 midpoint rule; measured rho_s
+    # e = 2000: highlight ~2 pixels wide, 4 x 4 sub-pixel samples; measured rho_s
     # off by 0.004-0.006 and e by 0.3 %.
     "extreme_sharp_phong": {"phong.rho_s": (0.01, 0.0)},
     # eta = 1.02: the specular lobe is ~1e-4 of the diffuse; measured m off 2.1 %.
@@ -49,12 +49,6 @@ EXTREME = {
 #: edge, where the transformed coordinate runs off to infinity; the values
 #: still meet the tolerances.
 AT_BOX_EDGE = {"extreme_sigma0"}
-#: The dielectric fit takes minutes (its model traces 9 internal bounces);
-#: run with FITTER_SLOW_TESTS=1 (measured 244 s with 4 starts). Several
-#: starts: before the fit moved box-edge starts inside (f3daf49), one start
-#: from the default attenuation = 1 was reported "converged" at eta = 2.35.
-SLOW = {"dielectric"}
-N_STARTS = {"dielectric": 4}
 
 
 def _load(name):
@@ -65,14 +59,10 @@ def _load(name):
     return job, case["truth"], read_image(os.path.join(folder, "target.exr")), folder
 
 
-@pytest.mark.parametrize("name", [
-    pytest.param(n, marks=[pytest.mark.slow, pytest.mark.skipif(
-        not os.environ.get("FITTER_SLOW_TESTS"), reason="minutes-long fit; FITTER_SLOW_TESTS=1")])
-    if n in SLOW else n for n in CASES])
+@pytest.mark.parametrize("name", list(CASES))
 def test_recovers_truth(name):
     job, truth, target, folder = _load(name)
-    res = fitter.fit(target, job.scene, job.material, base_dir=folder,
-                     n_starts=N_STARTS.get(name, 1))
+    res = fitter.fit(target, job.scene, job.material, base_dir=folder)
     if name in AT_BOX_EDGE:
         assert res.status in ("converged", "max_steps"), res.message
     else:
