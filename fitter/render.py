@@ -145,16 +145,9 @@ class Renderer:
     def __init__(self, scene: Scene, material: Material, dtype=jnp.float64, base_dir=None):
         self.scene, self.material, self.dtype = scene, material, dtype
         self.env_type = scene.environment.type
-        env64 = load_environment(scene.environment, base_dir)
-        geo = build_geometry(scene, self.env_type, env64)
-        self.pixel_index = geo.pixel_index
-        # float32 renders still get geometry computed in float64, then rounded.
-        cast = lambda a: jnp.asarray(a, dtype=dtype) if np.asarray(a).dtype.kind == "f" \
-            else jnp.asarray(a)  # noqa: E731
-        self.geometry = jax.tree_util.tree_map(cast, geo)
-        self.env = jax.tree_util.tree_map(cast, env64)
-        self.sphere = (jnp.asarray(scene.sphere.center, dtype=dtype),
-                       jnp.asarray(scene.sphere.radius, dtype=dtype))
+        self.geometry, self.env, self.sphere = _prepare(
+            scene, jnp.dtype(dtype), os.path.abspath(base_dir) if base_dir else None)
+        self.pixel_index = np.asarray(self.geometry.pixel_index)
 
     @property
     def n_active(self) -> int:
@@ -174,6 +167,19 @@ class Renderer:
         s = self.scene
         img = self.geometry.background_image.at[self.geometry.pixel_index].set(vals)
         return img.reshape(s.height, s.width, 3)
+
+
+@functools.lru_cache(maxsize=8)
+def _prepare(scene: Scene, dtype, base_dir):
+    """Material-independent arrays of a scene (shared by every material)."""
+    env64 = load_environment(scene.environment, base_dir)
+    geo = build_geometry(scene, scene.environment.type, env64)
+    # float32 renders still get geometry computed in float64, then rounded.
+    cast = lambda a: jnp.asarray(a, dtype=dtype) if np.asarray(a).dtype.kind == "f" \
+        else jnp.asarray(a)  # noqa: E731
+    sphere = (jnp.asarray(scene.sphere.center, dtype=dtype),
+              jnp.asarray(scene.sphere.radius, dtype=dtype))
+    return jax.tree_util.tree_map(cast, geo), jax.tree_util.tree_map(cast, env64), sphere
 
 
 @functools.lru_cache(maxsize=16)
