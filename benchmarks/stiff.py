@@ -110,10 +110,10 @@ def cases() -> list[StiffCase]:
         _plastic(name="far start m x10", m=0.05, init=far, fast=True),
         _phong(1000.0, name="far start e /10", init={"phong.e": 100.0}, fast=True),
         StiffCase(name="dielectric eta=4 (near-total reflection at the rim)",
-                  lobes=("dielectric",), environment=True, lights=(), n_starts=1,
+                  lobes=("dielectric",), environment=True, lights=(),
                   truth={"dielectric.eta": 4.0, "dielectric.attenuation": [0.9, 0.7, 0.5]}),
         StiffCase(name="dielectric eta=1.001", lobes=("dielectric",), environment=True,
-                  lights=(), n_starts=1,
+                  lights=(),
                   truth={"dielectric.eta": 1.001, "dielectric.attenuation": [0.9, 0.7, 0.5]}),
     ]
     return out
