@@ -135,3 +135,23 @@ def test_float32_fit_is_close():
                         rtol=1e-5, atol=1e-6)
     # float32 residuals carry ~1e-7 relative rounding: recovery to 1e-4 is the honest level.
     assert_recovered(result, truth, rtol=1e-4)
+
+
+@pytest.mark.parametrize("loss", ["huber", "cauchy"])
+def test_robust_loss_ignores_outliers(loss):
+    # 32 hot pixels (dust, a stray reflection). Plain least squares is pulled off;
+    # Huber bounds each outlier's pull (some bias remains), Cauchy's pull vanishes
+    # for large residuals (redescending), so it recovers the truth closely.
+    truth = {"lambert.rho_d": [0.6, 0.4, 0.2], "phong.rho_s": 0.3, "phong.e": 20.0}
+    target = np.asarray(fitter.render(truth, SCENE)).copy()
+    rng = np.random.default_rng(3)
+    rows, cols = rng.integers(12, 28, 32), rng.integers(12, 28, 32)
+    target[rows, cols] += 0.5
+    init = {"lambert.rho_d": 0.5, "phong.rho_s": 0.2, "phong.e": 30.0}
+    plain = fitter.fit(target, SCENE, "lambert+phong", init=init)
+    robust = fitter.fit(target, SCENE, "lambert+phong", init=init, loss=loss, loss_scale=0.01)
+    err = lambda r: max(np.max(np.abs(np.asarray(r.params[k]) - np.asarray(v)) / np.abs(v))  # noqa: E731
+                        for k, v in truth.items())
+    assert err(plain) > 5e-2
+    assert err(robust) < (1e-2 if loss == "huber" else 1e-3)
+    assert err(robust) < err(plain) / 5
