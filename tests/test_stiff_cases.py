@@ -70,11 +70,6 @@ def test_unidentifiable_cases_are_reported(outcomes, name):
     assert row["outcome"] == "reported", row
 
 
-@pytest.mark.xfail(strict=True, raises=np.linalg.LinAlgError,
-                   reason="known bug (reported to the fit engine's owner): in float32 a reflectance "
-                          "fitted onto its box edge gives a zero Jacobian column; "
-                          "np.maximum(dxdz, 1e-300) rounds to 0 in float32, 0/0 = NaN reaches "
-                          "np.linalg.svd in _unidentifiable_at")
 def test_float32_reflectance_at_its_bound_is_reported_not_raised():
     case = next(c for c in FAST if c.name == "rho_d=1")
     row = stiff.run_case(case, SIZE, jnp.float32)

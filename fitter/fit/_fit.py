@@ -554,7 +554,8 @@ def _jac_res(spec, z, data):
     z = jnp.asarray(z, dtype=data.target.dtype)
     exe, tc = _compiled("jacres", spec, (z, data))
     J, r = exe(z, data)
-    return np.asarray(J), np.asarray(r), tc
+    # Diagnostics and covariances in float64, whatever the fit's dtype.
+    return np.asarray(J, dtype=np.float64), np.asarray(r, dtype=np.float64), tc
 
 
 def _dead_columns(spec: Spec, z, J) -> np.ndarray:
@@ -564,10 +565,12 @@ def _dead_columns(spec: Spec, z, J) -> np.ndarray:
     (``transforms.natural_scale``), so a coordinate saturated near a box edge
     is not mistaken for a parameter without effect.
     """
-    z = np.asarray(z)
+    # float64 throughout: in float32 the 1e-300 guard below would round to 0.
+    z = np.asarray(z, dtype=np.float64)
+    J = np.asarray(J, dtype=np.float64)
     effect = np.zeros(J.shape[1])
     for b, sl in spec.slices():
-        zb = jnp.asarray(z[sl])
+        zb = jnp.asarray(z[sl], dtype=jnp.float64)
         x = np.asarray(transforms.to_user(b.transform, zb, b.lower, b.upper))
         dxdz = np.asarray(transforms.derivative(b.transform, zb, b.lower, b.upper))
         scale = transforms.natural_scale(b.transform, x, b.lower, b.upper)
@@ -578,6 +581,7 @@ def _dead_columns(spec: Spec, z, J) -> np.ndarray:
 def _unidentifiable_at(spec, z, J, r, noise_sigma):
     """Blocks without usable information at ``z``: (keys, reasons) or None."""
     keys, reasons = [], []
+    J = np.asarray(J, dtype=np.float64)
     if not np.all(np.isfinite(J)):
         return None
     norms = np.linalg.norm(J, axis=0)
