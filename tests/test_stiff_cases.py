@@ -26,7 +26,6 @@ import os
 import sys
 
 import jax.numpy as jnp
-import numpy as np
 import pytest
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(__file__)), "benchmarks"))
