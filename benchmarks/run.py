@@ -206,7 +206,7 @@ def speed_ratios(evt: list[dict], case: str, res: int) -> list[dict]:
         # The baseline's own level: the error it stays below over its last fifth
         # (Adam with Monte Carlo gradients fluctuates around its plateau).
         tail = r["trace"][-max(1, len(r["trace"]) // 5):]
-        best = max(x["max_rel_err"] for x in tail)
+        best = 1.05 * max(x["max_rel_err"] for x in tail)  # 5 % slack: both may sit on one floor
         levels = sorted({*LEVELS, best}, reverse=True)
         for level in levels:
             tb, tl = time_to(r["trace"], level), time_to(lm["trace"], level)
@@ -344,9 +344,10 @@ def markdown(res: dict) -> str:
         L.append("## Stiff and extreme cases")
         L.append("")
         L.append("Outcomes (see benchmarks/stiff.py): recovered = converged and within tolerance "
-                 "(5 % rel, 0.02 abs); reported = not converged / unidentifiable / error within "
+                 "(5 % relative; for reflectances, sigma, eta at least 0.02 absolute); reported = not converged / unidentifiable / error within "
                  "the stated uncertainty; confident_wrong = converged, |err| > 5 stderr and > tol; "
-                 "nonfinite = NaN/Inf in parameters, gradients or covariance.")
+                 "nonfinite = NaN/Inf in parameters, gradients or covariance; error = the fit raised "
+                 "an exception.")
         L.append("")
         L.append("| dtype | recovered | reported | confident_wrong | nonfinite | error |")
         L.append("|---|---|---|---|---|---|")
@@ -354,11 +355,18 @@ def markdown(res: dict) -> str:
             L.append(f"| {dt} | {c['recovered']} | {c['reported']} | {c['confident_wrong']} | "
                      f"{c['nonfinite']} | {c['error']} |")
         L.append("")
-        L.append("| case | dtype | outcome | status | unidentifiable | s |")
-        L.append("|---|---|---|---|---|---|")
+        dtypes = list(st["counts"])
+        L.append("| case | " + " | ".join(f"{dt}: outcome (status; unidentifiable)"
+                                          for dt in dtypes) + " |")
+        L.append("|---|" + "---|" * len(dtypes))
+        cells: dict = {}
         for r in st["rows"]:
-            L.append(f"| {r['case']} | {r['dtype']} | {r['outcome']} | {r.get('status', '')} | "
-                     f"{', '.join(r.get('unidentifiable', []))} | {_fmt(r.get('seconds'))} |")
+            unid = ", ".join(r.get("unidentifiable") or [])
+            cells.setdefault(r["case"], {})[r["dtype"]] = (
+                f"**{r['outcome']}** ({r.get('status') or r.get('message', '')[:60]}"
+                + (f"; {unid}" if unid else "") + ")")
+        for case, by in cells.items():
+            L.append(f"| {case} | " + " | ".join(by.get(dt, "") for dt in dtypes) + " |")
     L.append("")
     return "\n".join(L)
 
@@ -423,16 +431,16 @@ def main(argv) -> int:
                 xla = os.path.join(tmp, "xla") if target_lm else ""
                 r = spawn("evt", spec, tmp, log, cache=xla)
                 results["evt"].append(r)
+                if "trace" in r:
+                    log(f"  final rel err {final_err(r['trace']):.3g} after "
+                        f"{r['trace'][-1]['time_s']:.3g} s, compile {r['compile_s']:.3g} s, "
+                        f"peak RSS {r['peak_rss_mb']:.0f} MB")
                 if target_lm:  # the same fit again, with the persistent cache now filled
                     log("[bench] ... again with a warm persistent XLA cache")
                     again = spawn("evt", spec, tmp, log, cache=xla)
                     if "trace" in again:
                         again["method"] = "lm (warm XLA cache)"
                         results["evt"].append(again)
-                if "trace" in r:
-                    log(f"  final rel err {final_err(r['trace']):.3g} after "
-                        f"{r['trace'][-1]['time_s']:.3g} s, compile {r['compile_s']:.3g} s, "
-                        f"peak RSS {r['peak_rss_mb']:.0f} MB")
         if "scaling" not in args.skip:
             log(f"[bench] scaling {plan['scaling']}")
             results["scaling"] = spawn("scaling", plan["scaling"], tmp, log)
