@@ -54,14 +54,15 @@ class Geometry(NamedTuple):
     background_image: np.ndarray
 
     def subset(self, rows: np.ndarray) -> "Geometry":
-        """The geometry of the active pixels ``rows`` only."""
-        per_light = lambda a: a[:, rows]  # noqa: E731
+        """The geometry of the active pixels ``rows`` only (NumPy arrays)."""
+        per_light = lambda a: np.asarray(a)[:, rows]  # noqa: E731
+        pick = lambda a: np.asarray(a)[rows]  # noqa: E731
         return self._replace(
-            pixel_index=self.pixel_index[rows], hit=self.hit[rows],
-            position=self.position[rows], normal=self.normal[rows],
-            ray_dir=self.ray_dir[rows],
+            pixel_index=pick(self.pixel_index), hit=pick(self.hit),
+            position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
             cosines=Cosines(*(per_light(a) for a in self.cosines)),
-            light_weight=per_light(self.light_weight), background=self.background[rows])
+            light_weight=per_light(self.light_weight), background=pick(self.background),
+            sample_weight=np.asarray(self.sample_weight), light_color=np.asarray(self.light_color))
 
 
 def intersect_sphere(o, d, center, radius):

@@ -19,6 +19,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import special
 
 #: Fraction of the range by which a start on the box edge is moved inside.
 EDGE = 1e-6
@@ -32,13 +33,19 @@ def _is_log(kind: str) -> bool:
     return kind == "log"
 
 
+def _sigmoid(z):
+    if isinstance(z, np.ndarray):  # NumPy in, NumPy out: no JAX dispatch for diagnostics
+        return special.expit(z), np
+    return jax.nn.sigmoid(z), jnp
+
+
 def to_user(kind: str, z, lo: float, hi: float):
-    """User value x(z) (JAX, differentiable)."""
-    s = jax.nn.sigmoid(z)
+    """User value x(z) (JAX and differentiable for JAX input; NumPy for NumPy input)."""
+    s, xp = _sigmoid(z)
     lo, hi = float(lo), float(hi)  # Python floats stay weakly typed: float32 z stays float32
     if _is_log(kind):
         a, b = float(np.log(lo)), float(np.log(hi))
-        return jnp.exp(a + (b - a) * s)
+        return xp.exp(a + (b - a) * s)
     return lo + (hi - lo) * s
 
 
@@ -56,11 +63,11 @@ def to_unconstrained(kind: str, x, lo: float, hi: float, margin: float = EDGE):
 
 def derivative(kind: str, z, lo: float, hi: float):
     """dx/dz, for mapping standard errors by the delta method."""
-    s = jax.nn.sigmoid(z)
+    s, xp = _sigmoid(z)
     ds = s * (1.0 - s)
     if _is_log(kind):
         a, b = np.log(lo), np.log(hi)
-        return jnp.exp(a + (b - a) * s) * (b - a) * ds
+        return xp.exp(a + (b - a) * s) * (b - a) * ds
     return (hi - lo) * ds
 
 

@@ -31,8 +31,8 @@ import dataclasses
 from typing import Any, Callable, Literal, NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 
-from .._math import dot, safe_div
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,16 +93,22 @@ class Cosines(NamedTuple):
 
 
 def cosines(n, wi, wo) -> Cosines:
-    """``Cosines`` of unit vectors (..., 3) (JAX; also accepts NumPy arrays)."""
-    ci, co = dot(n, wi), dot(n, wo)
+    """``Cosines`` of unit vectors (..., 3).
+
+    JAX arrays give JAX arrays (differentiable); NumPy arrays are computed in
+    NumPy, as the renderer tabulates them once per scene.
+    """
+    xp = np if all(isinstance(a, np.ndarray) for a in (n, wi, wo)) else jnp
+    dot_ = lambda a, b: xp.sum(a * b, axis=-1)  # noqa: E731
+    ci, co = dot_(n, wi), dot_(n, wo)
     h = wi + wo
-    hh = dot(h, h)
-    nh = dot(n, h)
+    hh = dot_(h, h)
+    nh = dot_(n, h)
     up = (nh > 0) & (hh > 0)
-    inv = jnp.where(up, 1.0 / jnp.sqrt(jnp.where(up, hh, 1.0)), 0.0)
-    cr = jnp.cross(n, h)
-    tan2 = safe_div(dot(cr, cr), nh * nh, up)
-    return Cosines(ci, co, dot(wi, wo), nh * inv, dot(wo, h) * inv, tan2)
+    inv = xp.where(up, 1.0 / xp.sqrt(xp.where(up, hh, 1.0)), 0.0)
+    cr = xp.cross(n, h)
+    tan2 = xp.where(up, dot_(cr, cr) / xp.where(up, nh * nh, 1.0), 0.0)
+    return Cosines(ci, co, dot_(wi, wo), nh * inv, dot_(wo, h) * inv, tan2)
 
 
 class SurfaceHit(NamedTuple):

@@ -21,6 +21,7 @@ from .. import transforms
 from ..material import Material
 from ..render import Renderer, _renderer, render_active
 from ..scene import Scene
+from ._cache import compile_cached
 from ._noise import estimate_noise
 from ._problem import LOSSES, Block, Data, Spec, params_from_z, residuals, z_from_params
 from ._solvers import SOLVERS, make_solver
@@ -110,7 +111,7 @@ def _compiled(kind, spec, args, **static):
     single = jnp.result_type(args[0]) == jnp.float32
     t0 = time.perf_counter()
     with jax.enable_x64(not single):
-        exe = jax.jit(f).lower(*args).compile()
+        exe = compile_cached(f, args, repr(key))
     _COMPILED[key] = exe
     return exe, time.perf_counter() - t0
 
@@ -473,8 +474,9 @@ class _Job:
             cov_z = np.zeros_like(cov_z)
             status, message = "failed", "the covariance is not finite (the solution is not finite)"
         params = _user(spec, z, data)
-        dxdz = np.concatenate([np.atleast_1d(np.asarray(
-            transforms.derivative(blk.transform, jnp.asarray(z[sl]), blk.lower, blk.upper)))
+        z = np.asarray(z, dtype=np.float64)
+        dxdz = np.concatenate([np.atleast_1d(
+            transforms.derivative(blk.transform, z[sl], blk.lower, blk.upper))
             for blk, sl in spec.slices()])
         sd = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * dxdz
         stderr, coords = {}, []
@@ -488,10 +490,14 @@ class _Job:
                                 "meaningful")
         d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
         corr = cov_z / np.outer(d, d)
-        model = np.asarray(render_active(
-            {k: self.cast(v) for k, v in params.items()}, data.geometry, data.env, data.sphere,
-            material=spec.material, env_type=spec.env_type))
-        used = np.asarray(data.weights) > 0
+        weights = np.asarray(data.weights, dtype=np.float64)
+        used = weights > 0
+        if spec.loss == "l2":  # residuals are (model - target) * weight
+            model = np.asarray(data.target) + r.reshape(-1, 3) / np.where(used, weights, 1.0)
+        else:
+            model = np.asarray(render_active(
+                {k: self.cast(v) for k, v in params.items()}, data.geometry, data.env,
+                data.sphere, material=spec.material, env_type=spec.env_type))
         err = np.where(used, model - np.asarray(data.target), 0.0)
         rmse = np.sqrt(np.sum(err**2, axis=0) / np.maximum(used.sum(axis=0), 1))
         noise = self.noise[0 if b is None else b]
@@ -541,7 +547,9 @@ def _status(code: int, z, cost) -> str:
 
 
 def _user(spec: Spec, z, data: Data) -> dict:
-    p = params_from_z(spec, jnp.asarray(z), data.fixed)
+    """User values (NumPy float64) of coordinates ``z`` plus the fixed values."""
+    p = params_from_z(spec, np.asarray(z, dtype=np.float64),
+                      {k: np.asarray(v, dtype=np.float64) for k, v in data.fixed.items()})
     return {k: np.asarray(v) for k, v in p.items()}
 
 
@@ -570,9 +578,8 @@ def _dead_columns(spec: Spec, z, J) -> np.ndarray:
     J = np.asarray(J, dtype=np.float64)
     effect = np.zeros(J.shape[1])
     for b, sl in spec.slices():
-        zb = jnp.asarray(z[sl], dtype=jnp.float64)
-        x = np.asarray(transforms.to_user(b.transform, zb, b.lower, b.upper))
-        dxdz = np.asarray(transforms.derivative(b.transform, zb, b.lower, b.upper))
+        x = transforms.to_user(b.transform, z[sl], b.lower, b.upper)
+        dxdz = transforms.derivative(b.transform, z[sl], b.lower, b.upper)
         scale = transforms.natural_scale(b.transform, x, b.lower, b.upper)
         effect[sl] = np.linalg.norm(J[:, sl], axis=0) / np.maximum(dxdz, 1e-300) * scale
     return effect <= ZERO_COLUMN * max(effect.max(), 1e-300)
