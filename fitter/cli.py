@@ -32,7 +32,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from .config import ConfigError, Job, dumps_toml, job_to_dict, load_config, solvers
-from .imageio import ImageError
+from .imageio import ImageError, current_umask
 from .material import MaterialError
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
@@ -303,7 +303,7 @@ def staged_dir(out: str):
     os.makedirs(parent, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(out)}.tmp-", dir=parent)
     try:
-        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp folders are 0700
+        os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp folders are 0700
         yield tmp
         if os.path.isdir(out):
             old = tempfile.mkdtemp(prefix=f".{os.path.basename(out)}.old-", dir=parent)
@@ -318,12 +318,6 @@ def staged_dir(out: str):
             with contextlib.suppress(OSError):
                 os.removedirs(parent)
         raise
-
-
-def _umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
 
 
 def _plain(value):

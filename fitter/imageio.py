@@ -89,7 +89,7 @@ def _atomic_write(path: str, write):
     os.close(fd)
     try:
         write(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp files are 0600
+        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp files are 0600
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -97,7 +97,8 @@ def _atomic_write(path: str, write):
         raise
 
 
-def _umask() -> int:
+def current_umask() -> int:
+    """The process umask (read by setting and restoring it)."""
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
