@@ -41,7 +41,7 @@ QUICK = {
     + [("plastic", 128, "adam", {"max_steps": 300}),
        ("plastic", 128, "mitsuba", {"spp": 16, "iters": 100})],
     "scaling": {"res": 64, "lights": [1, 2, 4], "batch": 8},
-    "stiff": {"size": 24, "dtypes": ["float64"], "fast_only": True},
+    "stiff": {"size": 24, "dtypes": ["float64", "float32"], "fast_only": True},
 }
 FULL = {
     "evt": [(c, 128, m, {}) for c in ("lambert", "oren_nayar", "phong", "torrance_sparrow",
@@ -50,7 +50,8 @@ FULL = {
     + [("plastic", r, m, {}) for r in (64, 128, 256)
        for m in ("lm", "dogleg", "bfgs", "adam", "scipy")]
     + [("plastic", r, "mitsuba", {"spp": spp, "iters": 300}) for r in (64, 128, 256)
-       for spp in (4, 16, 64)],
+       for spp in (4, 16, 64)]
+    + [("plastic", r, "mitsuba", {"spp": 16, "iters": 300, "lr": 0.05}) for r in (128, 256)],
     "scaling": {"res": 128, "lights": [1, 2, 4, 8], "batch": 16},
     "stiff": {"size": 32, "dtypes": ["float64", "float32"], "fast_only": False},
 }
@@ -132,6 +133,13 @@ def make_target(case: str, res: int, tmp: str) -> str:
 # --------------------------------------------------------------------------- analysis
 
 
+def label(r: dict) -> str:
+    """Method name with the Mitsuba baseline's settings."""
+    if r.get("method") == "mitsuba":
+        return f"mitsuba spp{r.get('spp')} lr{r.get('lr', 0.02):g}"
+    return r.get("method", "?")
+
+
 def time_to(trace, level):
     """Seconds until the max relative error drops below ``level`` and stays there."""
     t = None
@@ -178,8 +186,7 @@ def summarize(evt: list[dict]) -> list[dict]:
             continue
         tr = r["trace"]
         rows.append({
-            "case": r["case"], "res": r["res"], "method": r["method"]
-            + (f" spp{r['spp']}" if r["method"] == "mitsuba" else ""),
+            "case": r["case"], "res": r["res"], "method": label(r),
             "n_pixels": r["n_pixels"], "compile_s": r["compile_s"],
             "t_1pct": time_to(tr, 1e-2), "t_01pct": time_to(tr, 1e-3),
             "final_err": final_err(tr), "best_err": min(x["max_rel_err"] for x in tr),
@@ -194,14 +201,14 @@ def summarize(evt: list[dict]) -> list[dict]:
 
 def speed_ratios(evt: list[dict], case: str, res: int) -> list[dict]:
     """Time of each baseline / time of LM to reach the same error (same run)."""
-    by = {(r["method"], r.get("spp")): r for r in evt
+    by = {label(r): r for r in evt
           if r.get("case") == case and r.get("res") == res and "error" not in r}
-    lm = by.get(("lm", None))
+    lm = by.get("lm")
     out = []
     if lm is None:
         return out
-    for (m, spp), r in by.items():
-        if m not in ("scipy", "mitsuba"):
+    for name, r in by.items():
+        if r["method"] not in ("scipy", "mitsuba"):
             continue
         # The baseline's own level: the error it stays below over its last fifth
         # (Adam with Monte Carlo gradients fluctuates around its plateau).
@@ -210,7 +217,7 @@ def speed_ratios(evt: list[dict], case: str, res: int) -> list[dict]:
         levels = sorted({*LEVELS, best}, reverse=True)
         for level in levels:
             tb, tl = time_to(r["trace"], level), time_to(lm["trace"], level)
-            out.append({"baseline": m + (f" spp{spp}" if spp else ""), "level": level,
+            out.append({"baseline": name, "level": level,
                         "baseline_s": tb, "lm_s": tl,
                         "ratio": (tb / tl) if (tb is not None and tl) else None,
                         "baseline_best": level == best})
@@ -253,9 +260,8 @@ def plot(path, evt, case, resolutions):
             tr = [x for x in r["trace"] if x["time_s"] > 0]
             if not tr:
                 continue
-            label = r["method"] + (f" (spp {r['spp']})" if r["method"] == "mitsuba" else "")
             ax.loglog([x["time_s"] for x in tr], [max(x["max_rel_err"], 1e-9) for x in tr],
-                      label=label, marker="." if len(tr) < 40 else None)
+                      label=label(r), marker="." if len(tr) < 40 else None)
         for level in LEVELS:
             ax.axhline(level, color="grey", lw=0.5, ls=":")
         ax.set_xlabel("run time, s (compile excluded)")
