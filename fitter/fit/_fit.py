@@ -177,7 +177,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         solver: str = "levenberg_marquardt", mask="interior", exclude=None, weights=None,
         noise_sigma: float | None = None, loss: str = "l2", loss_scale: float | None = None,
         saturation: float | None = None, n_starts: int = 1, max_steps: int | None = None,
-        rtol: float = 1e-8, atol: float = 1e-10, dtype=jnp.float64,
+        rtol: float = 1e-6, atol: float = 1e-8, dtype=jnp.float64,
         base_dir: str | None = None, identifiability: bool = True) -> FitResult:
     """Fit the material's parameters to a target image.
 
@@ -315,7 +315,7 @@ class _Job:
     def make(cls, targets, scene, material, *, init=None, fixed=None, bounds=None,
              solver="levenberg_marquardt", mask="interior", exclude=None, weights=None,
              noise_sigma=None, loss="l2", loss_scale=None, saturation=None, max_steps=None,
-             rtol=1e-8, atol=1e-10, dtype=jnp.float64, base_dir=None) -> "_Job":
+             rtol=1e-6, atol=1e-8, dtype=jnp.float64, base_dir=None) -> "_Job":
         material = _as_material(material)
         if solver not in SOLVERS:
             raise FitError(f"unknown solver {solver!r}; known: {', '.join(SOLVERS)}")
