@@ -412,13 +412,16 @@ def speed_targets(summary, ratios) -> list[str]:
 
 
 def main(argv) -> int:
-    p = argparse.ArgumentParser(prog="fitter bench", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="fitter bench", description=__doc__.split("\n\n")[0].replace("``", ""))
     p.add_argument("--quick", action="store_true", help="the small run (< 5 min on 2 cores)")
     p.add_argument("--out", default=os.path.join(HERE, "results"), help="output folder")
     p.add_argument("--skip", action="append", default=[], choices=["evt", "scaling", "stiff"],
                    help="skip a part (repeatable)")
     p.add_argument("--worker", nargs=3, metavar=("KIND", "SPEC", "OUT"), help=argparse.SUPPRESS)
-    args = p.parse_args(argv)
+    try:
+        args = p.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a usage error (2), already printed
+        return 0 if exc.code == 0 else 2
     if args.worker:
         return worker(*args.worker)
     plan = QUICK if args.quick else FULL
