@@ -301,7 +301,8 @@ def markdown(res: dict) -> str:
                  f"{_fmt(r['image_rmse'])} | {r['steps']} | {_fmt(r['peak_rss_mb'])} | "
                  f"{_fmt(r['fit_warm_s'])} |")
     L.append("")
-    L.append(f"## Speed ratio at equal error ({TARGET_CASE}, {TARGET_RES}²): baseline time / LM time")
+    L.append(f"## Speed ratio at equal error ({TARGET_CASE}, {TARGET_RES}²): "
+             "baseline time / LM time")
     L.append("")
     L.append("| baseline | error level | baseline s | LM s | ratio |")
     L.append("|---|---|---|---|---|")
@@ -350,9 +351,11 @@ def markdown(res: dict) -> str:
         L.append("## Stiff and extreme cases")
         L.append("")
         L.append("Outcomes (see benchmarks/stiff.py): recovered = converged and within tolerance "
-                 "(5 % relative; for reflectances, sigma, eta at least 0.02 absolute); reported = not converged / unidentifiable / error within "
+                 "(5 % relative; for reflectances, sigma, eta at least 0.02 absolute); "
+                 "reported = not converged / unidentifiable / error within "
                  "the stated uncertainty; confident_wrong = converged, |err| > 5 stderr and > tol; "
-                 "nonfinite = NaN/Inf in parameters, gradients or covariance; error = the fit raised "
+                 "nonfinite = NaN/Inf in parameters, gradients or covariance; "
+                 "error = the fit raised "
                  "an exception.")
         L.append("")
         L.append("| dtype | recovered | reported | confident_wrong | nonfinite | error |")
@@ -412,7 +415,8 @@ def speed_targets(summary, ratios) -> list[str]:
 
 
 def main(argv) -> int:
-    p = argparse.ArgumentParser(prog="fitter bench", description=__doc__.split("\n\n")[0].replace("``", ""))
+    p = argparse.ArgumentParser(prog="fitter bench",
+                                description=__doc__.split("\n\n")[0].replace("``", ""))
     p.add_argument("--quick", action="store_true", help="the small run (< 5 min on 2 cores)")
     p.add_argument("--out", default=os.path.join(HERE, "results"), help="output folder")
     p.add_argument("--skip", action="append", default=[], choices=["evt", "scaling", "stiff"],

@@ -48,7 +48,8 @@ def run(spec: dict) -> dict:
     nb = int(spec["batch"])
     rng = np.random.default_rng(0)
     scene = job.scene
-    truths = [{"lambert.rho_d": rng.uniform(0.2, 0.8, 3), "torrance_sparrow.m": rng.uniform(0.1, 0.4),
+    truths = [{"lambert.rho_d": rng.uniform(0.2, 0.8, 3),
+               "torrance_sparrow.m": rng.uniform(0.1, 0.4),
                "torrance_sparrow.eta": rng.uniform(1.3, 1.8)} for _ in range(nb)]
     targets = np.stack([np.asarray(fitter.render(t, scene, job.material)) for t in truths])
     fit_batch = (getattr(fitter, "fit_batch", None) or getattr(fitter.fit, "fit_batch", None)

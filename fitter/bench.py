@@ -1,4 +1,4 @@
-"""``fitter bench``: the benchmarks of ``benchmarks/`` (error vs time, baselines, scaling, stiff cases).
+"""``fitter bench``: the benchmarks of ``benchmarks/`` (error vs time, scaling, stiff cases).
 
 The benchmark code lives in the source tree's ``benchmarks/`` folder (its
 baselines are not part of the package); this module finds it next to the
