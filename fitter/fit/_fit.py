@@ -366,8 +366,10 @@ class _Job:
             w = w / noise_sigma
         w = np.where(usable, w, 0.0)
         steps = max_steps or MAX_STEPS.get(solver, DEFAULT_MAX_STEPS)
-        geometry = renderer.geometry.subset(rows)._replace(pixel_index=None,
-                                                           background_image=None)
+        # Subset in NumPy (no per-op dispatch), then onto the device once: the
+        # solver must not copy host arrays on every call.
+        geometry = jax.tree_util.tree_map(jnp.asarray, renderer.geometry.subset(rows)._replace(
+            pixel_index=None, background_image=None))
         interior = np.zeros(scene.height * scene.width, dtype=bool)
         interior[renderer.pixel_index[rows]] = True
         noise = [estimate_noise(t, interior.reshape(scene.height, scene.width)) for t in targets]
