@@ -37,6 +37,8 @@ MAX_CONDITION = 1e8
 #: Standard error in the unconstrained coordinate beyond which a parameter is
 #: reported unidentifiable (the coordinate spans about +-14 over the box).
 MAX_Z_STDERR = 3.0
+#: Beyond this |z| the sigmoid's slope is < 1e-12: the parameter sits on its bound.
+SATURATED_Z = 27.0
 #: A fitted value within this fraction of its range from a box edge is "at bound".
 AT_BOUND = 1e-4
 #: With a known noise sigma, chi^2 per degree of freedom above this fails the fit.
@@ -125,8 +127,9 @@ def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
 
     ``mask``: ``"interior"`` (pixels whose every sub-pixel sample hits the
     sphere; default), ``"active"`` (any sample hits) or an (H, W) bool array.
-    Pixels with a NaN/Inf or negative value, in ``exclude``, or with a
-    channel at/above ``saturation`` are dropped.
+    Pixels with a NaN/Inf value, in ``exclude``, or with a channel at/above
+    ``saturation`` are dropped. Negative values are kept: zero-mean noise on a
+    dark pixel is data, and dropping it would bias the fit.
     """
     geo = renderer.geometry
     h, w = renderer.scene.height, renderer.scene.width
@@ -144,7 +147,7 @@ def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
         if m.shape != (h, w):
             raise FitError(f"mask has shape {m.shape}, expected {(h, w)}")
         chosen = m.reshape(-1)[renderer.pixel_index]
-    good = np.all(np.isfinite(flat), axis=1) & np.all(flat >= 0, axis=1)
+    good = np.all(np.isfinite(flat), axis=1)
     if exclude is not None:
         ex = np.asarray(exclude, dtype=bool)
         if ex.shape != (h, w):
@@ -350,9 +353,9 @@ class _Job:
         rows, n_dropped, _ = select_pixels(renderer, targets[0], mask, exclude, saturation)
         if rows.size == 0:
             raise FitError("no pixels to fit: the mask selects none, or every selected pixel "
-                           "is NaN/Inf, negative, excluded or saturated")
+                           "is NaN/Inf, excluded or saturated")
         picked = targets.reshape(len(targets), -1, 3)[:, renderer.pixel_index[rows]]
-        usable = np.all(np.isfinite(picked) & (picked >= 0), axis=-1, keepdims=True)
+        usable = np.all(np.isfinite(picked), axis=-1, keepdims=True)
         if saturation is not None:
             usable &= np.all(np.where(np.isfinite(picked), picked, 0) < saturation,
                              axis=-1, keepdims=True)
@@ -584,7 +587,10 @@ def _dead_columns(spec: Spec, z, J) -> np.ndarray:
         dxdz = transforms.derivative(b.transform, z[sl], b.lower, b.upper)
         scale = transforms.natural_scale(b.transform, x, b.lower, b.upper)
         effect[sl] = np.linalg.norm(J[:, sl], axis=0) / np.maximum(dxdz, 1e-300) * scale
-    return effect <= ZERO_COLUMN * max(effect.max(), 1e-300)
+    # A coordinate run off to a box edge has no slope left; that is "at bound"
+    # (reported as such), not evidence that the parameter has no effect.
+    saturated = np.abs(z) > SATURATED_Z
+    return (effect <= ZERO_COLUMN * max(effect.max(), 1e-300)) & ~saturated
 
 
 def _unidentifiable_at(spec, z, J, r, noise_sigma):
