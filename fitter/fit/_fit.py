@@ -625,8 +625,8 @@ def _unidentifiable_at(spec, z, J, r, noise_sigma):
     if s2 > 0 and not keys:
         cov = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
         sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-        at_edge = np.concatenate([np.atleast_1d(np.abs(np.asarray(z[sl])) > 9.0)
-                                  for _, sl in spec.slices()])
+        # |z| beyond logit(1 - AT_BOUND): a value at its bound, reported as such.
+        at_edge = np.abs(np.asarray(z, dtype=np.float64)) > np.log(1.0 / AT_BOUND - 1.0)
         loose = (sd > MAX_Z_STDERR) & ~at_edge
         for k in _blocks_of(spec, loose):
             keys.append(k)
