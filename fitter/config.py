@@ -8,7 +8,7 @@ file's folder. Every key is documented in ``configs/README.md``.
 
 Layout::
 
-    [scene]            width, height, supersampling
+    [scene]            width, height, supersampling, pixel_rule
     [scene.camera]     type, origin, target, up, fov | half_width
     [scene.sphere]     center, radius
     [[scene.lights]]   type = "point" (position, intensity)
@@ -277,12 +277,13 @@ def _resolve(base_dir: str, path: str) -> str:
 
 
 def _scene(r: _Reader, tbl: dict, base_dir: str) -> Scene:
-    r.table(tbl, "scene", {"width", "height", "supersampling", "camera", "sphere", "lights",
-                           "environment"})
+    r.table(tbl, "scene", {"width", "height", "supersampling", "pixel_rule", "camera", "sphere",
+                           "lights", "environment"})
     d = Scene()
     width = r.integer(tbl.get("width", d.width), "scene.width", lo=1)
     height = r.integer(tbl.get("height", d.height), "scene.height", lo=1)
     k = r.integer(tbl.get("supersampling", d.supersampling), "scene.supersampling", lo=1)
+    rule = r.choice(tbl.get("pixel_rule", d.pixel_rule), "scene.pixel_rule", ("gauss", "midpoint"))
     sphere = _sphere(r, r.sub(tbl, "sphere", "scene"))
     camera = _camera(r, r.sub(tbl, "camera", "scene"), sphere)
     lights_raw = tbl.get("lights", [])
@@ -291,7 +292,7 @@ def _scene(r: _Reader, tbl: dict, base_dir: str) -> Scene:
     lights = tuple(_light(r, lt, f"scene.lights[{i}]", sphere) for i, lt in enumerate(lights_raw))
     env = _environment(r, r.sub(tbl, "environment", "scene"), base_dir)
     return Scene(width=width, height=height, supersampling=k, camera=camera, sphere=sphere,
-                 lights=lights, environment=env)
+                 lights=lights, environment=env, pixel_rule=rule)
 
 
 def _sphere(r: _Reader, tbl: dict) -> Sphere:
@@ -534,8 +535,10 @@ def scene_to_dict(scene: Scene) -> dict:
         environment["radiance"] = list(env.radiance)
     elif env.type == "envmap":
         environment.update(file=env.file, scale=env.scale)
-    return {"width": scene.width, "height": scene.height, "supersampling": scene.supersampling,
-            "camera": camera,
+    out = {"width": scene.width, "height": scene.height, "supersampling": scene.supersampling}
+    if scene.pixel_rule != Scene().pixel_rule:
+        out["pixel_rule"] = scene.pixel_rule
+    return {**out, "camera": camera,
             "sphere": {"center": list(scene.sphere.center), "radius": scene.sphere.radius},
             "lights": lights, "environment": environment}
 

@@ -299,3 +299,13 @@ def test_shipped_configs_load():
         job = load_config(os.path.join(folder, name))
         assert job.fit.target is not None, name
         assert job.truth, name
+
+
+def test_pixel_rule_is_read_written_and_checked(tmp_path):
+    path = str(tmp_path / "x.toml")
+    assert job_from_dict(BASE, path).scene.pixel_rule == "gauss"
+    scene = job_from_dict(_with(("scene", "pixel_rule"), "midpoint"), path).scene
+    assert scene.pixel_rule == "midpoint"
+    assert scene_from_dict(scene_to_dict(scene), path) == scene
+    with pytest.raises(ConfigError, match="scene.pixel_rule"):
+        job_from_dict(_with(("scene", "pixel_rule"), "simpson"), path)
