@@ -123,3 +123,21 @@ def test_a_model_that_cannot_explain_the_image_is_not_converged():
     # The same check passes a fit of the right model.
     good = fitter.fit(target, SCENE, "lambert+phong")
     assert good.status == "converged"
+
+
+def test_channel_at_its_bound_among_live_coordinates_is_reported_not_raised():
+    """White (rho_d = 1) Lambert + Torrance-Sparrow: a rho_d channel driven to its
+    bound has a zero Jacobian column next to live ones; the separability check
+    must skip it (it once made the normalized SVD NaN and raise LinAlgError)."""
+    from fitter.fit._fit import SATURATED_Z, _unidentifiable_at
+    from fitter.fit._problem import Block, Spec
+
+    material = fitter.Material.make(["lambert", "torrance_sparrow"])
+    spec = Spec(material, "black", (Block("lambert.rho_d", 3, "logit", 0.0, 1.0),
+                                    Block("torrance_sparrow.m", 1, "log", 1e-3, 1.0)))
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(200, 4))
+    J[:, 0] = 0.0  # red channel saturated: no slope left
+    z = np.array([SATURATED_Z + 5.0, 0.3, -0.2, 0.1])
+    r = rng.normal(size=200) * 1e-3
+    assert _unidentifiable_at(spec, z, J, r, None) is None

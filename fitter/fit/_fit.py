@@ -605,7 +605,9 @@ def _unidentifiable_at(spec, z, J, r, noise_sigma):
         keys.append(k)
         reasons.append(f"{k} does not change the fitted pixels at the solution; held at its "
                        "initial value")
-    live = ~dead
+    # Columns run off to a box edge carry no slope (reported as at bound); a
+    # zero-norm column would make the normalized SVD below NaN.
+    live = ~dead & (np.abs(np.asarray(z, dtype=np.float64)) <= SATURATED_Z) & (norms > 0)
     if live.sum() >= 2:
         Jn = J[:, live] / norms[live]
         _, sv, vt = np.linalg.svd(Jn, full_matrices=False)
