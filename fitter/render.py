@@ -45,7 +45,7 @@ def complete_params(material: Material, params: Mapping[str, Any], dtype=jnp.flo
     return out
 
 
-def _with_local_jacobian(fn, theta, *args):
+def _with_local_jacobian(fn, theta, *args, value_and_jac=None):
     """``fn(theta, *args)`` whose derivative is J(theta) @ d(theta).
 
     A lobe depends on a handful of its own scalar parameters ``theta`` (n,),
@@ -54,7 +54,13 @@ def _with_local_jacobian(fn, theta, *args):
     Jacobian (..., n) once and contracting it with the tangents makes the
     cost of a full Jacobian independent of how many other parameters are
     fitted. ``args`` (geometry, environment) are treated as constants.
+    ``value_and_jac(theta, *args) -> (value, J)`` replaces ``jax.jacfwd``
+    where a lobe gives its derivatives by hand (``Lobe.shape_grad``).
     """
+    if value_and_jac is None:
+        def value_and_jac(theta, *rest):
+            jac, out = jax.jacfwd(lambda t: (fn(t, *rest),) * 2, has_aux=True)(theta)
+            return out, jac
 
     @jax.custom_jvp
     def f(theta, *args):
@@ -63,7 +69,7 @@ def _with_local_jacobian(fn, theta, *args):
     @f.defjvp
     def f_jvp(primals, tangents):
         theta, *rest = primals
-        jac, out = jax.jacfwd(lambda t: (fn(t, *rest),) * 2, has_aux=True)(theta)
+        out, jac = value_and_jac(theta, *rest)
         return out, jnp.tensordot(jac, tangents[0], axes=1)
 
     return f(theta, *args)
@@ -92,11 +98,20 @@ def _brdf_unit(lobe, p, opts, geo: Geometry):
         g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (L, P, K)
         return jnp.einsum("lpk,lpk,lc->pc", g, weight, color)
 
+    def unit_and_jac(theta, cos, weight, color):
+        q = unflatten(theta)
+        g, dg = lobe.shape_grad(q, opts, cos)
+        # One (n + 1)-stack, one contraction: value and every column at once.
+        s = jnp.stack([g] + [dg[name] for name in q]) * weight
+        out = jnp.einsum("tlpk,lc->tpc", s, color)
+        return out[0], jnp.moveaxis(out[1:], 0, -1)
+
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
     args = (geo.cosines, geo.light_weight, geo.light_color)
     if theta is None:
         return unit(None, *args)
-    return _with_local_jacobian(unit, theta, *args)
+    return _with_local_jacobian(unit, theta, *args,
+                                value_and_jac=unit_and_jac if lobe.shape_grad else None)
 
 
 def _specular(lobe, p, opts, geo: Geometry, env: EnvData, sphere, env_type):

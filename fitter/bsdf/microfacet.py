@@ -46,6 +46,13 @@ def beckmann_d_lecture(cos_h, tan2_h, m):
     return jnp.where(up, jnp.exp(-tan2 / m2) * (1.0 + tan2) ** 2 / (4.0 * m2), 0.0)
 
 
+def beckmann_dlog_d_dm(tan2_h, m):
+    """d ln D / d m = 2 tan^2(beta) / m^3 - 2 / m of the lecture's (or the
+    normalised) Beckmann D, (...); m clamped to ``M_MIN`` (derivative 0 below)."""
+    mc = jnp.maximum(m, M_MIN)
+    return jnp.where(m >= M_MIN, 2.0 * tan2_h / (mc * mc * mc) - 2.0 / mc, 0.0)
+
+
 def g_v_groove(cos_h, cos_i, cos_o, wo_h):
     """Torrance-Sparrow / Cook-Torrance V-groove shadowing-masking.
 
@@ -72,6 +79,25 @@ def smith_g1_beckmann(cos_w, m):
     a_s = jnp.where(short, a, 1.0)
     g = (3.535 * a_s + 2.181 * a_s * a_s) / (1.0 + 2.276 * a_s + 2.577 * a_s * a_s)
     return jnp.where(short, g, 1.0)
+
+
+def smith_g1_beckmann_dm(cos_w, m):
+    """G1 (as ``smith_g1_beckmann``) and dG1/dm, each (...).
+
+    a = cos / (m sin) gives da/dm = -a/m; G1 = N(a)/Q(a) gives
+    dG1/da = (N' Q - N Q') / Q^2. Zero where G1 = 1 (a >= 1.6) or m < M_MIN.
+    """
+    mc = jnp.maximum(m, M_MIN)
+    sin_w = safe_sqrt(1.0 - cos_w * cos_w)
+    tilted = sin_w > 0
+    a = safe_div(cos_w, mc * sin_w, tilted)
+    short = tilted & (a < 1.6)
+    a_s = jnp.where(short, a, 1.0)
+    num = 3.535 * a_s + 2.181 * a_s * a_s
+    den = 1.0 + 2.276 * a_s + 2.577 * a_s * a_s
+    dg_da = ((3.535 + 4.362 * a_s) * den - num * (2.276 + 5.154 * a_s)) / (den * den)
+    dg_dm = jnp.where(short & (m >= M_MIN), dg_da * (-a_s / mc), 0.0)
+    return jnp.where(short, num / den, 1.0), dg_dm
 
 
 def g_smith(cos_i, cos_o, m):

@@ -39,6 +39,19 @@ def _shape(p, opts, c):
     return (a + b * term) / jnp.pi
 
 
+def _shape_grad(p, opts, c):
+    """Shape and d shape / d sigma (``Lobe.shape_grad``): dA/dsigma =
+    -0.33 sigma / (sigma^2 + 0.33)^2, dB/dsigma = 0.081 sigma / (sigma^2 + 0.09)^2."""
+    sigma = p["sigma"]
+    s2 = sigma * sigma
+    a, b = coefficients(sigma)
+    da = -0.33 * sigma / ((s2 + 0.33) * (s2 + 0.33))
+    db = 0.081 * sigma / ((s2 + 0.09) * (s2 + 0.09))
+    cmax = jnp.maximum(c.cos_i, c.cos_o)
+    term = safe_div(jnp.maximum(c.cos_io - c.cos_i * c.cos_o, 0.0), cmax, cmax > 0)
+    return (a + b * term) / jnp.pi, {"sigma": (da + db * term) / jnp.pi}
+
+
 def _mitsuba(p, opts):
     """Mitsuba has no Oren-Nayar: ``fitter.mitsuba`` registers this plugin."""
     return {"type": "fitter_oren_nayar", "reflectance": {"type": "rgb", "value": [float(x) for x in p["rho_d"]]},
@@ -55,6 +68,7 @@ LOBE = Lobe(
     ),
     scale="rho_d",
     shape=_shape,
+    shape_grad=_shape_grad,
     doc="Oren-Nayar (qualitative A/B form); sigma = 0 is Lambert.",
     mitsuba=_mitsuba,
 )

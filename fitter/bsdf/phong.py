@@ -28,6 +28,19 @@ def _shape(p, opts, c):
     return lobe
 
 
+def _shape_grad(p, opts, c):
+    """Shape and d shape / d e = shape * ln cos(alpha) (``Lobe.shape_grad``)."""
+    cos_alpha = 2.0 * c.cos_i * c.cos_o - c.cos_io
+    e = p["e"]
+    pos = cos_alpha > 0
+    log_c = jnp.where(pos, jnp.log(jnp.where(pos, cos_alpha, 1.0)), 0.0)
+    lobe = jnp.where(pos, jnp.exp(e * log_c), 0.0)
+    if opts["normalized"]:
+        norm = (e + 2.0) / (2.0 * jnp.pi)
+        return lobe * norm, {"e": lobe * (norm * log_c + 1.0 / (2.0 * jnp.pi))}
+    return lobe, {"e": lobe * log_c}
+
+
 def _mitsuba(p, opts):
     """Mitsuba has no Phong: ``fitter.mitsuba`` registers this plugin."""
     return {"type": "fitter_phong", "specular_reflectance": {"type": "rgb", "value": [float(x) for x in p["rho_s"]]},
@@ -44,6 +57,7 @@ LOBE = Lobe(
     options=(Option("normalized", (False, True), False, "scale by (e + 2) / (2 pi)"),),
     scale="rho_s",
     shape=_shape,
+    shape_grad=_shape_grad,
     doc="Phong lobe rho_s cos^e(alpha), optionally energy-normalised.",
     mitsuba=_mitsuba,
 )

@@ -21,8 +21,9 @@ import jax.numpy as jnp
 
 from .._math import safe_div
 from .base import Lobe, Option, Param
-from .fresnel import fresnel_dielectric
-from .microfacet import beckmann_d_lecture, g_smith, g_v_groove
+from .fresnel import fresnel_dielectric, fresnel_dielectric_deta
+from .microfacet import (beckmann_d_lecture, beckmann_dlog_d_dm, g_smith, g_v_groove,
+                         smith_g1_beckmann_dm)
 
 
 def _shape(p, opts, c):
@@ -35,6 +36,24 @@ def _shape(p, opts, c):
         g = g_v_groove(c.cos_h, ci, co, c.cos_d)
     f = fresnel_dielectric(jnp.clip(c.cos_d, 0.0, 1.0), p["eta"])
     return safe_div(d * g * f, jnp.pi * ci * co, ok)
+
+
+def _shape_grad(p, opts, c):
+    """Shape and its derivatives in m and eta (``Lobe.shape_grad``)."""
+    ci, co, m = c.cos_i, c.cos_o, p["m"]
+    ok = (ci > 0) & (co > 0)
+    d = beckmann_d_lecture(c.cos_h, c.tan2_h, m)
+    dlog_d = beckmann_dlog_d_dm(jnp.where(d > 0, c.tan2_h, 0.0), m)
+    f, df = fresnel_dielectric_deta(jnp.clip(c.cos_d, 0.0, 1.0), p["eta"])
+    if opts["geometry"] == "smith":
+        g_i, dg_i = smith_g1_beckmann_dm(ci, m)
+        g_o, dg_o = smith_g1_beckmann_dm(co, m)
+        g, dg = g_i * g_o, dg_i * g_o + g_i * dg_o
+    else:
+        g, dg = g_v_groove(c.cos_h, ci, co, c.cos_d), 0.0
+    base = safe_div(d, jnp.pi * ci * co, ok)
+    value = base * g * f
+    return value, {"m": value * dlog_d + base * dg * f, "eta": base * g * df}
 
 
 def _mitsuba(p, opts):
@@ -61,6 +80,7 @@ LOBE = Lobe(
                     "shadowing-masking term G"),),
     scale="rho_s",
     shape=_shape,
+    shape_grad=_shape_grad,
     doc="Torrance-Sparrow: D G F / (pi cos_i cos_o), Beckmann D.",
     mitsuba=_mitsuba,
 )
