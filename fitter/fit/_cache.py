@@ -39,11 +39,12 @@ def _source_fingerprint() -> str:
     return h.hexdigest()
 
 
-def compile_cached(f, args, key: str):
-    """``jax.jit(f).lower(*args).compile()``, reusing an exported trace if one is on disk."""
+def compile_cached(f, args, key: str, options: dict | None = None):
+    """``jax.jit(f).lower(*args).compile(options)``, reusing an exported trace if one
+    is on disk. ``options``: XLA compiler options (part of XLA's cache key)."""
     folder = jax.config.jax_compilation_cache_dir
     if not folder:
-        return jax.jit(f).lower(*args).compile()
+        return jax.jit(f).lower(*args).compile(options)
     digest = hashlib.sha256((key + _source_fingerprint()).encode()).hexdigest()[:32]
     path = os.path.join(folder, f"fitter-{digest}.jaxexport")
     try:
@@ -57,6 +58,6 @@ def compile_cached(f, args, key: str):
             with os.fdopen(fd, "wb") as fh:
                 fh.write(exported.serialize())
             os.replace(tmp, path)
-        return jax.jit(exported.call).lower(*args).compile()
+        return jax.jit(exported.call).lower(*args).compile(options)
     except Exception:  # a stale or unreadable file must never break a fit
-        return jax.jit(f).lower(*args).compile()
+        return jax.jit(f).lower(*args).compile(options)
