@@ -63,6 +63,9 @@ class FitError(ValueError):
 
 _COMPILED: dict = {}
 
+#: The zero-column check at the start first looks at every 8th fitted pixel.
+START_CHECK_STRIDE = 8
+
 #: XLA options for the solver loops. Loop-invariant code motion hoists the
 #: parameter-independent parts of every sample (masks, G, 1/cos) out of the
 #: solver's while loop into separate, unfused passes over (lights, pixels,
@@ -71,7 +74,29 @@ _COMPILED: dict = {}
 SOLVE_XLA_OPTIONS = {"xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
 
 
+def _jacobian_r(spec: Spec, z, data):
+    """(R, r) at ``z``: the residuals (N,) and the Jacobian's R factor (n, n).
+
+    J = Q R has J's column norms, singular values and Gram matrix J^T J =
+    R^T R, all that the diagnostics need, without moving the (N, n) Jacobian
+    to the host. A float32 fit (traced without x64) returns J itself; the
+    host factors it in float64 (``_r_factor``).
+    """
+    J, r = jax.jacfwd(lambda z: (residuals(z, data, spec),) * 2, has_aux=True)(z)
+    if J.dtype == jnp.float64:
+        J = jnp.linalg.qr(J, mode="r")
+    return J, r
+
+
+def _r_factor(J):
+    """R factor (n, n) in float64 of a Jacobian, or R itself, from ``_jacobian_r``."""
+    J = np.asarray(J, dtype=np.float64)
+    return J if J.shape[0] == J.shape[1] else np.linalg.qr(J, mode="r")
+
+
 def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps: int):
+    """Compiled entry: starts (S, n) -> (z, code, steps, cost) per start, the
+    best start's index, and ``_jacobian_r`` there (the diagnostics)."""
     solver = make_solver(solver_name, rtol, atol)
 
     def fn(z, data):
@@ -79,11 +104,21 @@ def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps:
 
     def one(z0, data):
         sol = optx.least_squares(fn, solver, z0, args=data, max_steps=max_steps, throw=False)
-        r = fn(sol.value, data)
-        return sol.value, sol.result._value, sol.stats["num_steps"], 0.5 * jnp.sum(r * r)
+        info = getattr(sol.state, "f_info", None)
+        if isinstance(info, optx.FunctionInfo.ResidualJac):
+            # Gauss-Newton family: the solver's last accepted linearisation is at
+            # sol.value; materialising it costs n cheap tangents, not a new Jacobian.
+            r, J = info.residual, info.jac.as_matrix()
+            jr = (jnp.linalg.qr(J, mode="r") if J.dtype == jnp.float64 else J, r)
+        else:
+            jr = _jacobian_r(spec, sol.value, data)
+        r = jr[1]
+        return sol.value, sol.result._value, sol.stats["num_steps"], 0.5 * jnp.sum(r * r), jr
 
     def many(z0s, data):
-        return jax.lax.map(lambda z0: one(z0, data), z0s)
+        zs, codes, steps, costs, (Rs, rs) = jax.lax.map(lambda z0: one(z0, data), z0s)
+        best = _best(costs, zs, jnp)
+        return zs, codes, steps, costs, best, (Rs[best], rs[best])
 
     return many
 
@@ -93,8 +128,9 @@ def _batch_fn(spec: Spec, batch: str, **static):
     one = _solve_fn(spec, **static)
 
     def single(z0, target, weights, data):
-        out = one(z0[None], data._replace(target=target, weights=weights))
-        return jax.tree_util.tree_map(lambda a: a[0], out)
+        zs, codes, steps, costs, _, jr = one(z0[None], data._replace(target=target,
+                                                                   weights=weights))
+        return zs[0], codes[0], steps[0], costs[0], jr
 
     def run(z0, data):
         if batch == "vmap":
@@ -114,8 +150,8 @@ def _compiled(kind, spec, args, **static):
         f = _solve_fn(spec, **static)
     elif kind == "batch":
         f = _batch_fn(spec, **static)
-    else:  # Jacobian and residuals in one pass
-        f = jax.jacfwd(lambda z, data: (residuals(z, data, spec),) * 2, has_aux=True)
+    else:  # Jacobian (as its R factor in float64) and residuals in one pass
+        f = functools.partial(_jacobian_r, spec)
     # optimistix creates some constants (e.g. LM's damping) as Python floats, which
     # x64 would make float64: a float32 fit is traced with x64 off.
     single = jnp.result_type(args[0]) == jnp.float32
@@ -254,12 +290,13 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     z0s = job.cast(make_starts(job.spec, job.z_init(), n_starts))
     solve, tc = _compiled("solve", job.spec, (z0s, data), **job.static)
     job.t_compile += tc
-    zs, codes, nsteps, costs = (np.asarray(a) for a in solve(z0s, data))
-    best = _best(costs, zs)
+    zs, codes, nsteps, costs, best, (R, r) = solve(z0s, data)
+    zs, codes, nsteps, costs, best = (np.asarray(a) for a in (zs, codes, nsteps, costs, best))
     starts = [{"params": _user(job.spec, zs[i], data), "cost": float(costs[i]),
                "status": _status(int(codes[i]), zs[i], costs[i])} for i in range(len(costs))]
     return job.finish(0, zs[best], int(codes[best]), int(nsteps[best]), float(costs[best]),
-                      identifiability, t_start, starts)
+                      identifiability, t_start, starts,
+                      jr=(_r_factor(R), np.asarray(r, dtype=np.float64)))
 
 
 def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
@@ -296,13 +333,15 @@ def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
     z0 = job.cast(job.z_init())
     solve, tc = _compiled("batch", job.spec, (z0, data), batch=batch, **job.static)
     job.t_compile += tc
-    zs, codes, nsteps, costs = (np.asarray(a) for a in solve(z0, data))
+    zs, codes, nsteps, costs, (R, r) = (jax.tree_util.tree_map(np.asarray, a)
+                                        for a in solve(z0, data))
     share = (time.perf_counter() - t_start - job.t_compile) / len(targets)
     results = []
     for b in range(len(targets)):
         t0 = time.perf_counter()
         res = job.finish(b, zs[b], int(codes[b]), int(nsteps[b]), float(costs[b]),
-                         identifiability, t0, starts=[], refit=False)
+                         identifiability, t0, starts=[], refit=False,
+                         jr=(_r_factor(R[b]), np.asarray(r[b], dtype=np.float64)))
         if identifiability and res is None:  # became unidentifiable: refit alone
             res = fit(targets[b], scene, material, identifiability=True, **kwargs)
         else:
@@ -410,13 +449,17 @@ class _Job:
         return Spec(self.material, self.renderer.env_type, self.blocks, self.loss,
                     self.loss_scale)
 
-    def data(self, b: int | None) -> Data:
-        """Arrays of target ``b`` (all targets stacked if None)."""
+    def data(self, b: int | None, stride: int = 1) -> Data:
+        """Arrays of target ``b`` (all targets stacked if None); every
+        ``stride``-th fitted pixel only if ``stride`` > 1."""
         free = {blk.key for blk in self.blocks}
         fixed = {k: self.cast(v) for k, v in self.init_full.items() if k not in free}
         sel = slice(None) if b is None else b
-        return Data(self.geometry, self.renderer.env, self.renderer.sphere,
-                    self.cast(self.targets[sel]), self.cast(self.weights[sel]), fixed)
+        geometry = self.geometry if stride == 1 else _fitted_geometry(
+            self.renderer, self.rows[::stride].astype(np.int64).tobytes())
+        pick = lambda a: self.cast(a[sel][..., ::stride, :])  # noqa: E731
+        return Data(geometry, self.renderer.env, self.renderer.sphere,
+                    pick(self.targets), pick(self.weights), fixed)
 
     def z_init(self):
         return z_from_params(self.spec, self.init_full, START_MARGIN)
@@ -433,9 +476,17 @@ class _Job:
         Returns a failed result if nothing is left to fit.
         """
         z0 = self.z_init()
-        J0, _, tc = _jac_res(self.spec, z0, self.data(0))
-        self.t_compile += tc
-        dead = _blocks_of(self.spec, _dead_columns(self.spec, z0, J0))
+        # A column alive on a strided subset of the pixels is alive (the common
+        # case, at 1/8 of the cost); one that looks dead there is checked on all.
+        stride = START_CHECK_STRIDE if self.rows.size >= START_CHECK_STRIDE * 512 else 1
+        while True:
+            J0, _, tc = _jac_res(self.spec, z0, self.data(0, stride))
+            self.t_compile += tc
+            dead = _dead_columns(self.spec, z0, J0)
+            if stride == 1 or not dead.any():
+                break
+            stride = 1
+        dead = _blocks_of(self.spec, dead)
         self.hold(dead, [f"{k} does not change the fitted pixels at the start (zero "
                          f"Jacobian column); held at {_fmt(self.init_full[k])}" for k in dead])
         if not self.blocks:
@@ -444,15 +495,19 @@ class _Job:
         return None
 
     def finish(self, b, z, code, iters, cost, identifiability, t_start, starts,
-               refit=True) -> FitResult | None:
+               refit=True, jr=None) -> FitResult | None:
         """Check, refit without unidentifiable parameters, and report target ``b``.
 
+        ``jr``: (R, r) at ``z`` if the solve returned them (``_jac_res``).
         With ``refit=False`` an unidentifiable parameter at the solution
         returns None (the caller refits).
         """
         spec, data = self.spec, self.data(b)
-        J, r, tc = _jac_res(spec, z, data)
-        self.t_compile += tc
+        if jr is None:
+            J, r, tc = _jac_res(spec, z, data)
+            self.t_compile += tc
+        else:
+            J, r = jr
         warnings, unidentifiable = list(self.warnings), list(self.unidentifiable)
         if identifiability and np.isfinite(cost):
             held = _unidentifiable_at(spec, z, J, r, self.noise_sigma)
@@ -472,10 +527,10 @@ class _Job:
                 z1 = self.cast(z_from_params(spec, start, START_MARGIN)[None])
                 solve, tc = _compiled("solve", spec, (z1, data), **self.static)
                 self.t_compile += tc
-                zs, codes, nsteps, costs = (np.asarray(a) for a in solve(z1, data))
-                z, code, cost, iters = zs[0], int(codes[0]), float(costs[0]), iters + int(nsteps[0])
-                J, r, tc = _jac_res(spec, z, data)
-                self.t_compile += tc
+                zs, codes, nsteps, costs, _, (J, r) = solve(z1, data)
+                z, code, cost, iters = (np.asarray(zs[0]), int(codes[0]), float(costs[0]),
+                                        iters + int(nsteps[0]))
+                J, r = _r_factor(J), np.asarray(r, dtype=np.float64)
         return self._report(b, spec, data, z, code, iters, cost, J, r, warnings,
                             unidentifiable, t_start, starts)
 
@@ -552,11 +607,10 @@ def _fmt(v) -> str:
     return f"{float(a):.6g}" if a.ndim == 0 else "[" + ", ".join(f"{x:.6g}" for x in a) + "]"
 
 
-def _best(costs, zs) -> int:
-    ok = np.isfinite(costs) & np.all(np.isfinite(zs), axis=1)
-    if not ok.any():
-        return 0
-    return int(np.argmin(np.where(ok, costs, np.inf)))
+def _best(costs, zs, xp=np):
+    """Index of the lowest finite cost with a finite solution (0 if none)."""
+    ok = xp.isfinite(costs) & xp.all(xp.isfinite(zs), axis=1)
+    return xp.argmin(xp.where(ok, costs, xp.inf))
 
 
 def _status(code: int, z, cost) -> str:
@@ -581,16 +635,22 @@ def _blocks_of(spec: Spec, flags: np.ndarray) -> list[str]:
 
 
 def _jac_res(spec, z, data):
-    """(J (N, n), residuals (N,), compile seconds) at ``z``, as NumPy."""
+    """(R (n, n), residuals (N,), compile seconds) at ``z``, as float64 NumPy.
+
+    R is the Jacobian's R factor (``_jacobian_r``); diagnostics and
+    covariances are computed in float64, whatever the fit's dtype.
+    """
     z = jnp.asarray(z, dtype=data.target.dtype)
     exe, tc = _compiled("jacres", spec, (z, data))
-    J, r = exe(z, data)
-    # Diagnostics and covariances in float64, whatever the fit's dtype.
-    return np.asarray(J, dtype=np.float64), np.asarray(r, dtype=np.float64), tc
+    R, r = exe(z, data)
+    return _r_factor(R), np.asarray(r, dtype=np.float64), tc
 
 
 def _dead_columns(spec: Spec, z, J) -> np.ndarray:
     """Coordinates whose parameter cannot change the fitted pixels (bool (n,)).
+
+    ``J``: the Jacobian (N, n) or its R factor (same column norms); likewise
+    for ``_unidentifiable_at`` (same singular values and J^T J).
 
     Each column is measured in user units times the parameter's natural scale
     (``transforms.natural_scale``), so a coordinate saturated near a box edge
