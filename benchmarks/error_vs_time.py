@@ -90,6 +90,7 @@ class _Problem:
     """The fit problem exactly as ``fitter.fit`` sets it up (interior pixels, l2)."""
 
     def __init__(self, job, base, target, init):
+        import jax
         import jax.numpy as jnp
 
         from fitter.fit import select_pixels
@@ -105,8 +106,10 @@ class _Problem:
                              specs[k].upper) for k in self.free)
         self.init_full = mat.full_params({**init, **job.fixed})
         fixed = {k: jnp.asarray(v) for k, v in self.init_full.items() if k not in self.free}
-        geo = self.renderer.geometry.subset(rows)._replace(pixel_index=None,
-                                                           background_image=None)
+        # On the device once, as fitter.fit does: NumPy arrays here would be
+        # copied to the device on every traced step.
+        geo = jax.tree_util.tree_map(jnp.asarray, self.renderer.geometry.subset(rows)._replace(
+            pixel_index=None, background_image=None))
         self.spec = Spec(mat, self.renderer.env_type, blocks, "l2", 0.01)
         self.data = Data(geo, self.renderer.env, self.renderer.sphere,
                          jnp.asarray(flat[rows]), jnp.ones((rows.size, 3)), fixed)
