@@ -137,7 +137,34 @@ def test_channel_at_its_bound_among_live_coordinates_is_reported_not_raised():
                                     Block("torrance_sparrow.m", 1, "log", 1e-3, 1.0)))
     rng = np.random.default_rng(3)
     J = rng.normal(size=(200, 4))
-    J[:, 0] = 0.0  # red channel saturated: no slope left
     z = np.array([SATURATED_Z + 5.0, 0.3, -0.2, 0.1])
     r = rng.normal(size=200) * 1e-3
+    # As autodiff gives it: the slope in rho times the sigmoid's slope at z = 32.
+    J[:, 0] *= 1.0 / (np.exp(z[0]) + 2.0 + np.exp(-z[0]))
     assert _unidentifiable_at(spec, z, J, r, None) is None
+    J[:, 0] = 0.0  # no slope left even in rho: nothing says it is at the bound
+    keys, _ = _unidentifiable_at(spec, z, J, r, None)
+    assert keys == ["lambert.rho_d"]
+
+
+def test_stderr_is_the_mapped_interval_not_the_delta_method_near_a_bound():
+    """rho = sigmoid(z) at z = -5 with sd(z) = 5: the +-1 sigma interval is
+    rho in [sigmoid(-10), sigmoid(0)] = [4.5e-5, 0.5], half-width 0.25; the
+    delta method would claim 0.0066 * 5 = 0.033, a confidence the image never
+    gave. With sd(z) = 1e-4 both agree (closed forms of the logistic)."""
+    from scipy.special import expit
+
+    from fitter.fit._fit import _covariance
+    from fitter.fit._problem import Block, Spec
+
+    spec = Spec(fitter.Material.make(["lambert"]), "black",
+                (Block("lambert.rho_d", 3, "logit", 0.0, 1.0),))
+    z = np.array([-5.0, -5.0, 0.0])
+    for sd_z in (5.0, 1e-4):
+        J = np.eye(3) / sd_z  # J^T J = I / sd^2 with s2 = 1
+        _, stderr, span = _covariance(spec, z, J, 1.0)
+        expect = 0.5 * (expit(z + sd_z) - expit(z - sd_z))
+        np.testing.assert_allclose(stderr, expect, rtol=1e-9)
+        np.testing.assert_allclose(span, 2 * expect, rtol=1e-9)
+    delta = expit(z) * (1 - expit(z)) * 1e-4
+    np.testing.assert_allclose(stderr, delta, rtol=1e-6)

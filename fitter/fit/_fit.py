@@ -35,9 +35,10 @@ ZERO_COLUMN = 1e-9
 #: Condition number of the column-normalised Jacobian beyond which the
 #: direction of the smallest singular value is taken as unidentifiable.
 MAX_CONDITION = 1e8
-#: Standard error in the unconstrained coordinate beyond which a parameter is
-#: reported unidentifiable (the coordinate spans about +-14 over the box).
-MAX_Z_STDERR = 3.0
+#: A parameter whose +-1 sigma interval covers more than this fraction of its
+#: box (in log for log boxes) is reported unidentifiable: at the centre of a
+#: box that is a standard error of 3 in z.
+MAX_SPAN = 0.9
 #: Beyond this |z| the sigmoid's slope is < 1e-12: the parameter sits on its bound.
 SATURATED_Z = 27.0
 #: A fitted value within this fraction of its range from a box edge is "at bound".
@@ -547,25 +548,26 @@ class _Job:
             message = (f"poor fit: chi^2/dof = {chi2 / dof:.3g} > {MAX_REDUCED_CHI2} for the "
                        "given noise_sigma (a local minimum or a model that cannot explain the "
                        "image; try n_starts > 1)")
-        cov_z = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
+        cov_z, sd, _ = _covariance(spec, z, J, s2)
         if not np.all(np.isfinite(cov_z)):
+            blind = np.isinf(np.diag(cov_z))
             cov_z = np.zeros_like(cov_z)
-            status, message = "failed", "the covariance is not finite (the solution is not finite)"
+            status, message = "failed", (
+                "the covariance is not finite (the solution is not finite)" if not blind.any()
+                else f"{', '.join(_blocks_of(spec, blind))} does not change the fitted pixels "
+                     "(fit with identifiability=True to hold it)")
+            sd = np.zeros_like(sd)
         params = _user(spec, z, data)
         z = np.asarray(z, dtype=np.float64)
-        dxdz = np.concatenate([np.atleast_1d(
-            transforms.derivative(blk.transform, z[sl], blk.lower, blk.upper))
-            for blk, sl in spec.slices()])
-        sd = np.sqrt(np.maximum(np.diag(cov_z), 0.0)) * dxdz
         stderr, coords = {}, []
         for blk, sl in spec.slices():
             stderr[blk.key] = sd[sl] if blk.size == 3 else float(sd[sl][0])
             coords += [blk.key] if blk.size == 1 else [f"{blk.key}[{i}]" for i in range(3)]
-            u = (np.asarray(params[blk.key]) - blk.lower) / (blk.upper - blk.lower)
+            u = _box_fraction(blk, params[blk.key])
             if np.any((u < AT_BOUND) | (u > 1 - AT_BOUND)):
                 warnings.append(f"{blk.key} = {_fmt(params[blk.key])} is at the bound of "
-                                f"[{blk.lower:g}, {blk.upper:g}]; its standard error is not "
-                                "meaningful")
+                                f"[{blk.lower:g}, {blk.upper:g}]; its standard error is half "
+                                "a +-1 sigma interval cut by that bound")
         d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
         corr = cov_z / np.outer(d, d)
         weights = np.asarray(data.weights, dtype=np.float64)
@@ -703,16 +705,69 @@ def _unidentifiable_at(spec, z, J, r, noise_sigma):
     dof = max(r.size - J.shape[1], 1)
     s2 = 1.0 if noise_sigma is not None else float(r @ r) / dof
     if s2 > 0 and not keys:
-        cov = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
-        sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-        # |z| beyond logit(1 - AT_BOUND): a value at its bound, reported as such.
-        at_edge = np.abs(np.asarray(z, dtype=np.float64)) > np.log(1.0 / AT_BOUND - 1.0)
-        loose = (sd > MAX_Z_STDERR) & ~at_edge
+        _, _, span = _covariance(spec, z, J, s2)
+        loose = span > MAX_SPAN
         for k in _blocks_of(spec, loose):
             keys.append(k)
             reasons.append(f"{k} is not constrained by the image (standard error larger than "
                            "its whole range); held at its initial value")
     return (keys, reasons) if keys else None
+
+
+def _covariance(spec: Spec, z, J, s2: float):
+    """Covariance of the fitted coordinates and the +-1 sigma interval of each parameter.
+
+    Returns (cov (n, n), stderr (n,), span (n,)). Interior coordinates are z;
+    a value at its bound (``AT_BOUND``) uses u = x / natural_scale instead (J
+    column divided by dx/dz, times the scale), as dx/dz -> 0 there would make
+    its error vanish, a confidence the image never gave. A column with no
+    slope at all gets an infinite variance, not pinv's 0.
+
+    ``stderr`` is half the width of the coordinate's +-1 sigma interval mapped
+    to the parameter and clipped to its box: the delta method when that
+    interval is small, and honest when it reaches a box edge (z = -5 +- 5 is
+    rho in [4e-5, 0.5], not 0.0067 +- 0.033). ``span`` is the interval's width
+    as a fraction of the box (for log boxes, in log). ``J`` may be the
+    Jacobian's R factor (same J^T J).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    J = np.array(J, dtype=np.float64)
+    edges, scales = [], []
+    for b, sl in spec.slices():
+        x = transforms.to_user(b.transform, z[sl], b.lower, b.upper)
+        dxdz = transforms.derivative(b.transform, z[sl], b.lower, b.upper)
+        scale = transforms.natural_scale(b.transform, x, b.lower, b.upper)
+        u = _box_fraction(b, x)
+        edge = (u < AT_BOUND) | (u > 1.0 - AT_BOUND)
+        cols = np.arange(sl.start, sl.stop)[edge]
+        J[:, cols] *= (scale / np.where(dxdz > 0, dxdz, np.inf))[edge]
+        edges.append(edge)
+        scales.append(scale)
+    cov = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
+    blind = np.linalg.norm(J, axis=0) == 0
+    cov[blind, :] = cov[:, blind] = 0.0
+    cov[blind, blind] = np.inf
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    stderr, span = np.zeros(spec.n), np.zeros(spec.n)
+    for (b, sl), edge, scale in zip(spec.slices(), edges, scales):
+        zs, d = z[sl], np.where(np.isfinite(sd[sl]), sd[sl], 1e300)
+        lo = transforms.to_user(b.transform, zs - d, b.lower, b.upper)
+        hi = transforms.to_user(b.transform, zs + d, b.lower, b.upper)
+        x = transforms.to_user(b.transform, zs, b.lower, b.upper)
+        lo = np.where(edge, np.clip(x - d * scale, b.lower, b.upper), lo)
+        hi = np.where(edge, np.clip(x + d * scale, b.lower, b.upper), hi)
+        stderr[sl] = np.where(np.isfinite(sd[sl]), 0.5 * (hi - lo), np.inf)
+        span[sl] = np.where(np.isfinite(sd[sl]), _box_fraction(b, hi) - _box_fraction(b, lo),
+                            1.0)
+    return cov, stderr, span
+
+
+def _box_fraction(b: Block, x):
+    """Where ``x`` lies in the box of ``b``, 0..1 (in log for a log box)."""
+    x = np.asarray(x, dtype=np.float64)
+    if b.transform == "log":
+        return np.log(np.maximum(x, b.lower) / b.lower) / np.log(b.upper / b.lower)
+    return (x - b.lower) / (b.upper - b.lower)
 
 
 def _all_held(init_full, unidentifiable, warnings, n_pix, n_drop, tc, tr) -> FitResult:
