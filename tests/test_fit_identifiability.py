@@ -31,6 +31,22 @@ def test_mirror_in_a_black_environment_is_unidentifiable():
     assert r.status == "converged" and all_finite(r)
 
 
+def test_dead_column_found_on_a_large_image_through_the_strided_start_check():
+    """At 96^2 (> START_CHECK_STRIDE * 512 fitted pixels) the start check first
+    looks at every 8th pixel; a parameter dead there is confirmed on all of them
+    and held, and a live one (rho_d) is never held."""
+    from fitter.fit._fit import START_CHECK_STRIDE
+
+    scene = fitter.Scene(width=96, height=96, supersampling=1, lights=LIGHTS)
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "mirror.rho_m": 0.8}
+    target = np.asarray(fitter.render(truth, scene))
+    r = fitter.fit(target, scene, "lambert+mirror", init={"lambert.rho_d": 0.3, "mirror.rho_m": 0.5})
+    assert r.n_pixels >= START_CHECK_STRIDE * 512
+    assert r.unidentifiable == ["mirror.rho_m"]
+    assert any("at the start" in w for w in r.warnings)
+    np.testing.assert_allclose(r.params["lambert.rho_d"], truth["lambert.rho_d"], rtol=1e-6)
+
+
 def test_fresnel_scale_degeneracy_is_detected():
     # Orthographic view with the light along the view axis: every half vector is
     # the view direction, so F = F(normal incidence; eta) is one constant and only

@@ -18,8 +18,10 @@ class FitResult:
         params: every parameter of the material in user units,
             ``{"lobe.param": float or (3,) array}`` (fixed ones included).
         stderr: one-sigma standard errors of the free, identifiable
-            parameters (Gauss-Newton covariance s^2 (J^T J)^-1 mapped through
-            the parameter transforms by the delta method), same shapes.
+            parameters, same shapes: half the width of the +-1 sigma interval
+            of the Gauss-Newton covariance s^2 (J^T J)^-1, mapped through the
+            parameter transform and clipped to the box (the delta method when
+            small; see ``fitter.fit._fit._covariance``).
         free: names of the parameters that were fitted.
         unidentifiable: parameters the data cannot constrain; they were held
             at their initial value and have no stderr.
