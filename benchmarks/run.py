@@ -342,6 +342,9 @@ def markdown(res: dict) -> str:
             L.append("")
             batch = (f"`fit_batch`: {_fmt(b['batch_s'])} s ({b.get('batch_converged')} converged)"
                      if b.get("batch_s") is not None else "`fit_batch` not available")
+            if b.get("vmap_s") is not None:
+                batch += (f"; `fit_batch(batch=\"vmap\")`: {_fmt(b['vmap_s'])} s "
+                          f"({b.get('vmap_converged')} converged)")
             L.append(f"Batch of {b['n']} targets at {b['res']}² (compiled): sequential "
                      f"`fit` {_fmt(b['sequential_s'])} s ({b['sequential_converged']} converged); "
                      f"{batch}.")
