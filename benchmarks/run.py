@@ -353,7 +353,8 @@ def markdown(res: dict) -> str:
         L.append("")
         L.append("## Stiff and extreme cases")
         L.append("")
-        L.append("Outcomes (see benchmarks/stiff.py): recovered = converged and within tolerance "
+        L.append("Outcomes (see benchmarks/stiff.py): recovered = converged, every parameter "
+                 "identifiable and within tolerance "
                  "(5 % relative; for reflectances, sigma, eta at least 0.02 absolute); "
                  "reported = not converged / unidentifiable / error within "
                  "the stated uncertainty; confident_wrong = converged, |err| > 5 stderr and > tol; "

@@ -198,7 +198,8 @@ def classify(result, truth: dict) -> tuple[str, dict]:
         return "nonfinite", detail
     if result.status == "converged" and wrong:
         return "confident_wrong", detail
-    if result.status == "converged" and within:
+    # A parameter held as unidentifiable was not recovered, only honestly reported.
+    if result.status == "converged" and within and not result.unidentifiable:
         return "recovered", detail
     return "reported", detail
 
