@@ -184,3 +184,25 @@ def test_stderr_is_the_mapped_interval_not_the_delta_method_near_a_bound():
         np.testing.assert_allclose(span, 2 * expect, rtol=1e-9)
     delta = expit(z) * (1 - expit(z)) * 1e-4
     np.testing.assert_allclose(stderr, delta, rtol=1e-6)
+
+
+def test_ambiguity_check_flags_only_what_a_quadratic_cost_cannot_explain():
+    """Two coordinates, cov = sigma^2 I. An alternative start on the edge of the
+    95 % region of a quadratic cost (delta chi^2 = 0.98^2 q at 0.98 sqrt(q) sigma)
+    is consistent with the covariance; one as good (delta chi^2 = 0.2) at
+    2 sqrt(q) sigma is not, and only its parameter is flagged."""
+    from scipy.stats import chi2
+
+    from fitter.fit._fit import AMBIGUOUS_LEVEL, _ambiguous
+    from fitter.fit._problem import Block, Spec
+
+    spec = Spec(fitter.Material.make(["oren_nayar"]), "black",
+                (Block("oren_nayar.sigma", 1, "box", 0.0, 1.5),
+                 Block("oren_nayar.rho_d", 1, "logit", 0.0, 1.0)))
+    sigma, q = 0.01, chi2.ppf(AMBIGUOUS_LEVEL, 2)
+    z, J, r = np.zeros(2), np.eye(2) / sigma, np.zeros(10)
+    edge = (np.array([0.98 * np.sqrt(q) * sigma, 0.0]), 0.5 * 0.98**2 * q)
+    assert _ambiguous(spec, z, J, r, 1.0, 0.0, [edge]) is None
+    far = (np.array([0.0, 2.0 * np.sqrt(q) * sigma]), 0.1)
+    keys, reasons = _ambiguous(spec, z, J, r, 1.0, 0.0, [edge, far])
+    assert keys == ["oren_nayar.rho_d"] and "another start" in reasons[0]

@@ -64,11 +64,10 @@ class FitError(ValueError):
 
 _COMPILED: dict = {}
 
-#: Another start within this joint confidence level of the best one, but more
-#: than AMBIGUOUS_SIGMAS standard errors away in a parameter, makes that
-#: parameter unidentifiable (``_ambiguous``).
+#: Another start within this joint confidence level of the best one, but
+#: beyond that region's reach in a parameter, makes that parameter
+#: unidentifiable (``_ambiguous``).
 AMBIGUOUS_LEVEL = 0.95
-AMBIGUOUS_SIGMAS = 3.0
 
 #: Rounds of hold-and-refit after a fit (``_Job.finish``).
 MAX_REFITS = 2
@@ -755,9 +754,10 @@ def _ambiguous(spec: Spec, z, J, r, noise_sigma, cost: float, alternatives):
 
     The covariance at the best start is a local, linear statement. Another
     start that ends within the ``AMBIGUOUS_LEVEL`` joint confidence region
-    (chi^2 above the best by less than that quantile of chi^2 with n degrees
-    of freedom) but more than ``AMBIGUOUS_SIGMAS`` standard errors away in a
-    parameter shows the image does not determine it: measured at m = 1e-3 on
+    (chi^2 above the best by less than that quantile q of chi^2 with n degrees
+    of freedom) but more than sqrt(q) standard errors away in a coordinate --
+    outside the region's projection, were the cost quadratic -- shows the
+    image does not determine that parameter: measured at m = 1e-3 on
     32^2 (m = 0.0054 +- 0.0001 by one start, 0.003 by another, delta chi^2 =
     6.6) and at eta = 1 (m = 1.0 +- 0.09 against 0.003, delta chi^2 = 2.7).
     """
@@ -770,15 +770,19 @@ def _ambiguous(spec: Spec, z, J, r, noise_sigma, cost: float, alternatives):
     s2 = 1.0 if noise_sigma is not None else float(r @ r) / max(r.size - spec.n, 1)
     if not s2 > 0:
         return None
-    _, sd, _ = _covariance(spec, z, J, s2)
-    limit = 0.5 * s2 * chi2.ppf(AMBIGUOUS_LEVEL, spec.n)
+    cov, sd, _ = _covariance(spec, z, J, s2)
+    level = chi2.ppf(AMBIGUOUS_LEVEL, spec.n)
+    # Were the cost quadratic, no point of the region would lie further than
+    # sqrt(level) standard errors from the best in any coordinate (the
+    # projection of the ellipsoid): beyond that is evidence, not chance.
+    reach = np.sqrt(level * np.diag(cov))
     x = _user_flat(spec, z)
     keys, reasons = [], []
     for za, ca in alternatives:
-        if ca - cost > limit:
+        if ca - cost > 0.5 * s2 * level:
             continue
         xa = _user_flat(spec, za)
-        far = np.abs(xa - x) > AMBIGUOUS_SIGMAS * sd
+        far = np.abs(_fit_coordinates(spec, z, za)) > reach
         for key in _blocks_of(spec, far):
             if key in keys:
                 continue
@@ -788,6 +792,21 @@ def _ambiguous(spec: Spec, z, J, r, noise_sigma, cost: float, alternatives):
                            f"(chi^2 {2.0 * (ca - cost) / s2:+.2g}) at {_fmt(xa[sl])} against "
                            f"{_fmt(x[sl])} +- {_fmt(sd[sl])}; held at this fit's value")
     return (keys, reasons) if keys else None
+
+
+def _fit_coordinates(spec: Spec, z, za) -> np.ndarray:
+    """``za - z`` in the coordinates of ``_covariance`` at ``z``: z, or
+    x / natural_scale for a value at its bound."""
+    z, za = np.asarray(z, dtype=np.float64), np.asarray(za, dtype=np.float64)
+    d = za - z
+    for b, sl in spec.slices():
+        x = transforms.to_user(b.transform, z[sl], b.lower, b.upper)
+        xa = transforms.to_user(b.transform, za[sl], b.lower, b.upper)
+        u = _box_fraction(b, x)
+        edge = (u < AT_BOUND) | (u > 1.0 - AT_BOUND)
+        scale = transforms.natural_scale(b.transform, x, b.lower, b.upper)
+        d[sl] = np.where(edge, (xa - x) / scale, d[sl])
+    return d
 
 
 def _user_flat(spec: Spec, z) -> np.ndarray:
