@@ -521,19 +521,30 @@ class _Job:
         else:
             J, r = jr
         warnings, unidentifiable = list(self.warnings), list(self.unidentifiable)
-        # Hold what the image does not determine and refit the rest, from the best
-        # point and from where every other start ended (so the refit can be
-        # checked for ambiguity too); a second round catches what the first hid.
-        for _ in range(MAX_REFITS if identifiability else 0):
+        # Hold what the image does not constrain and refit the rest, from the best
+        # point and from where every other start ended (so the refit is checked
+        # for ambiguity too). A parameter that is only ambiguous (another start
+        # as good, elsewhere) is marked, not held: the others keep their errors
+        # from the whole covariance, not ones conditional on an arbitrary value.
+        marked = None
+        for round_ in range(MAX_REFITS + 1 if identifiability else 0):
             if not np.isfinite(cost):
                 break
-            held = self._held(spec, data, z, J, r, cost, alternatives)
-            if not held:
+            unid = _unidentifiable_at(spec, z, J, r, self.noise_sigma)
+            ambiguous = _ambiguous(spec, z, J, r, self.noise_sigma, cost, alternatives)
+            if unid is None or round_ == MAX_REFITS:
+                marked = ambiguous
                 break
             if not refit:
                 return None
-            keys, reasons = held
-            points = [_user(spec, z, data)] + [_user(spec, za, data) for za, _ in alternatives]
+            keys, reasons = unid
+            best = _user(spec, z, data)
+            for k, why in zip(*(ambiguous or ([], []))):
+                if k not in keys:  # held with the others, at this fit's value
+                    keys.append(k)
+                    reasons.append(why + "; held at this fit's value")
+                    self.init_full[k] = best[k]
+            points = [best] + [_user(spec, za, data) for za, _ in alternatives]
             self.hold(keys, reasons)
             warnings, unidentifiable = list(self.warnings), list(self.unidentifiable)
             if not self.blocks:
@@ -545,30 +556,18 @@ class _Job:
                 k: v for k, v in p.items() if k not in keys}}, START_MARGIN) for p in points]))
             solve, tc = _compiled("solve", spec, (z0s, data), **self.static)
             self.t_compile += tc
-            zs, codes, nsteps, costs, best, (J, r) = solve(z0s, data)
+            zs, codes, nsteps, costs, best_i, (J, r) = solve(z0s, data)
             zs, codes, nsteps, costs = (np.asarray(x) for x in (zs, codes, nsteps, costs))
-            best = int(best)
-            z, code, cost, iters = zs[best], int(codes[best]), float(costs[best]), \
-                iters + int(nsteps[best])
+            best_i = int(best_i)
+            z, code, cost, iters = zs[best_i], int(codes[best_i]), float(costs[best_i]), \
+                iters + int(nsteps[best_i])
             J, r = _r_factor(J), np.asarray(r, dtype=np.float64)
-            alternatives = [(zs[i], float(costs[i])) for i in range(len(costs)) if i != best]
+            alternatives = [(zs[i], float(costs[i])) for i in range(len(costs)) if i != best_i]
+        if marked:
+            unidentifiable += marked[0]
+            warnings += marked[1]
         return self._report(b, spec, data, z, code, iters, cost, J, r, warnings,
                             unidentifiable, t_start, starts)
-
-    def _held(self, spec, data, z, J, r, cost, alternatives):
-        """(keys, reasons) to hold at ``z``, or None: parameters without usable
-        information (held at their initial value) and parameters another start
-        places elsewhere as well (held at this fit's value)."""
-        keys, reasons = _unidentifiable_at(spec, z, J, r, self.noise_sigma) or ([], [])
-        ambiguous = _ambiguous(spec, z, J, r, self.noise_sigma, cost, alternatives)
-        best = _user(spec, z, data)
-        for k, why in zip(*(ambiguous or ([], []))):
-            if k not in keys:
-                keys.append(k)
-                reasons.append(why)
-                # A value that fits as well as any: kept, but not as a result.
-                self.init_full[k] = best[k]
-        return (keys, reasons) if keys else None
 
     def _report(self, b, spec, data, z, code, iters, cost, J, r, warnings, unidentifiable,
                 t_start, starts) -> FitResult:
@@ -596,7 +595,8 @@ class _Job:
         z = np.asarray(z, dtype=np.float64)
         stderr, coords = {}, []
         for blk, sl in spec.slices():
-            stderr[blk.key] = sd[sl] if blk.size == 3 else float(sd[sl][0])
+            if blk.key not in unidentifiable:  # marked ambiguous: no error to give
+                stderr[blk.key] = sd[sl] if blk.size == 3 else float(sd[sl][0])
             coords += [blk.key] if blk.size == 1 else [f"{blk.key}[{i}]" for i in range(3)]
             u = _box_fraction(blk, params[blk.key])
             if np.any((u < AT_BOUND) | (u > 1 - AT_BOUND)):
@@ -790,7 +790,7 @@ def _ambiguous(spec: Spec, z, J, r, noise_sigma, cost: float, alternatives):
             keys.append(key)
             reasons.append(f"{key} is not determined by the image: another start fits as well "
                            f"(chi^2 {2.0 * (ca - cost) / s2:+.2g}) at {_fmt(xa[sl])} against "
-                           f"{_fmt(x[sl])} +- {_fmt(sd[sl])}; held at this fit's value")
+                           f"{_fmt(x[sl])} +- {_fmt(sd[sl])}")
     return (keys, reasons) if keys else None
 
 

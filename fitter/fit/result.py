@@ -23,8 +23,10 @@ class FitResult:
             parameter transform and clipped to the box (the delta method when
             small; see ``fitter.fit._fit._covariance``).
         free: names of the parameters that were fitted.
-        unidentifiable: parameters the data cannot constrain; they were held
-            at their initial value and have no stderr.
+        unidentifiable: parameters the data cannot constrain; they have no
+            stderr. Held at their initial value, except those only found
+            ambiguous by the multi-start check (another start as good,
+            elsewhere), which keep the best start's value.
         correlation: (n, n) correlation matrix of the free scalar
             coordinates named in ``coordinates`` (``"lambert.rho_d[0]"``, ...).
         coordinates: names of the rows of ``correlation``.
