@@ -168,7 +168,7 @@ def _param_table(ax, result) -> None:
     rows, colours = [], []
     for key, value in (result.get("params") or {}).items():
         if key in unident:
-            err = "unidentifiable (held)"
+            err = "unidentifiable (see warnings)"
         elif key in stderr:
             err = _vec(stderr[key])
         else:

@@ -533,7 +533,9 @@ class _Job:
             unid = _unidentifiable_at(spec, z, J, r, self.noise_sigma)
             ambiguous = _ambiguous(spec, z, J, r, self.noise_sigma, cost, alternatives)
             if unid is None or round_ == MAX_REFITS:
-                marked = ambiguous
+                # Out of rounds: what is still unidentifiable is marked, not held.
+                marked = [list(a) + list(b) for a, b in zip(unid or ([], []),
+                                                             ambiguous or ([], []))]
                 break
             if not refit:
                 return None
@@ -563,8 +565,8 @@ class _Job:
                 iters + int(nsteps[best_i])
             J, r = _r_factor(J), np.asarray(r, dtype=np.float64)
             alternatives = [(zs[i], float(costs[i])) for i in range(len(costs)) if i != best_i]
-        if marked:
-            unidentifiable += marked[0]
+        if marked and marked[0]:
+            unidentifiable += [k for k in dict.fromkeys(marked[0])]
             warnings += marked[1]
         return self._report(b, spec, data, z, code, iters, cost, J, r, warnings,
                             unidentifiable, t_start, starts)
