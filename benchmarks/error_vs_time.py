@@ -200,6 +200,10 @@ def run_jax(method, job, base, target, init, max_steps):
     kw = dict(init=init, fixed=job.fixed, solver=solver, base_dir=base)
     cold = fitter.fit(target, job.scene, job.material, **kw)
     warm = fitter.fit(target, job.scene, job.material, **kw)
+    # What a user who gives no start gets (the CLI's default): the lobe defaults.
+    plain = {**kw, "init": None}
+    fitter.fit(target, job.scene, job.material, **plain)
+    defaults = fitter.fit(target, job.scene, job.material, **plain)
     prob = _Problem(job, base, target, init)
     run_init, step, compile_s = stepper(prob, solver)
     z = jax.numpy.asarray(prob.z0())
@@ -219,6 +223,8 @@ def run_jax(method, job, base, target, init, max_steps):
             break
     product = {"compile_s": cold.time_compile, "fit_cold_s": cold.time_compile + cold.time_run,
                "fit_warm_s": warm.time_run, "iterations": warm.iterations,
+               "fit_warm_defaults_s": defaults.time_run,
+               "iterations_defaults": defaults.iterations,
                "status": warm.status, "params": warm.to_dict()["params"]}
     return prob, samples, compile_s, product
 

@@ -193,6 +193,7 @@ def summarize(evt: list[dict]) -> list[dict]:
             "steps": tr[-1]["step"], "trace_s": tr[-1]["time_s"],
             "image_rmse": tr[-1].get("image_rmse"), "peak_rss_mb": r.get("peak_rss_mb"),
             "fit_warm_s": r.get("fit_warm_s"), "fit_cold_s": r.get("fit_cold_s"),
+            "fit_warm_defaults_s": r.get("fit_warm_defaults_s"),
             "product_compile_s": r.get("compile_s") if r["method"] not in ("scipy", "mitsuba")
             else None,
         })
@@ -391,9 +392,13 @@ def speed_targets(summary, ratios) -> list[str]:
     if lm is None:
         return ["(no LM run at the target case)"]
     fw, pc = lm["fit_warm_s"], lm["product_compile_s"]
-    out.append(f"fit once compiled: {_fmt(fw)} s (target ≤ {TARGET_FIT_S} s: "
-               f"{'met' if fw is not None and fw <= TARGET_FIT_S else 'NOT met'}; "
+    out.append(f"fit once compiled, from the benchmark's start: {_fmt(fw)} s (target ≤ "
+               f"{TARGET_FIT_S} s: {'met' if fw is not None and fw <= TARGET_FIT_S else 'NOT met'}; "
                f"ratio {_fmt(fw / TARGET_FIT_S if fw else None)} of the target)")
+    fd = lm.get("fit_warm_defaults_s")
+    if fd is not None:
+        out.append(f"fit once compiled, from the lobe defaults (no start given): {_fmt(fd)} s "
+                   f"(target ≤ {TARGET_FIT_S} s: {'met' if fd <= TARGET_FIT_S else 'NOT met'})")
     out.append(f"compile (first run, no persistent XLA cache): {_fmt(pc)} s (target ≤ "
                f"{TARGET_COMPILE_S} s: "
                f"{'met' if pc is not None and pc <= TARGET_COMPILE_S else 'NOT met'})")
