@@ -71,14 +71,7 @@ def smith_g1_beckmann(cos_w, m):
     (3.535 a + 2.181 a^2) / (1 + 2.276 a + 2.577 a^2). Mitsuba 3's
     ``roughconductor`` uses the same form. ``cos_w`` is n . w, in [0, 1].
     """
-    m = jnp.maximum(m, M_MIN)
-    sin_w = safe_sqrt(1.0 - cos_w * cos_w)
-    tilted = sin_w > 0
-    a = safe_div(cos_w, m * sin_w, tilted)
-    short = tilted & (a < 1.6)
-    a_s = jnp.where(short, a, 1.0)
-    g = (3.535 * a_s + 2.181 * a_s * a_s) / (1.0 + 2.276 * a_s + 2.577 * a_s * a_s)
-    return jnp.where(short, g, 1.0)
+    return smith_g1_beckmann_dm(cos_w, m)[0]  # the unused derivative is compiled away
 
 
 def smith_g1_beckmann_dm(cos_w, m):
