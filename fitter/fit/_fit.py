@@ -114,7 +114,9 @@ def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps:
     def one(z0, data):
         sol = optx.least_squares(fn, solver, z0, args=data, max_steps=max_steps, throw=False)
         info = getattr(sol.state, "f_info", None)
-        if isinstance(info, optx.FunctionInfo.ResidualJac):
+        # optimistix's solver state is not public API: anything else falls back.
+        residual_jac = getattr(getattr(optx, "FunctionInfo", None), "ResidualJac", ())
+        if residual_jac and isinstance(info, residual_jac):
             # Gauss-Newton family: the solver's last accepted linearisation is at
             # sol.value; materialising it costs n cheap tangents, not a new Jacobian.
             r, J = info.residual, info.jac.as_matrix()
