@@ -20,7 +20,7 @@ A lobe is one of two kinds:
   gives the derivatives in the lobe's shape parameters by hand: forward-mode
   autodiff of a shape fuses poorly on CPU (Torrance-Sparrow at 256^2: 66 ms
   for its local Jacobian by ``jax.jacfwd``, 13 ms by hand), and the fitter
-  evaluates it at every solver step. ``tests/test_gradients.py`` checks every
+  evaluates it at every solver step. ``tests/test_stability.py`` checks every
   ``shape_grad`` against ``jax.jacfwd`` of ``shape``.
 * ``"specular"``: a delta lobe (mirror, smooth dielectric) that only sees the
   environment; ``radiance(p, opts, hit, env) -> (..., 3)`` returns the

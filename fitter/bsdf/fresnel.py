@@ -46,7 +46,8 @@ def fresnel_dielectric_deta(cos_i, eta):
     (eta^3 cos_t). Where total internal reflection holds (F_r = 1) the
     derivative is 0. The renderer uses it instead of forward-mode autodiff,
     which XLA fuses poorly on CPU (measured 5x slower for Torrance-Sparrow);
-    ``tests/test_gradients.py`` checks it against ``jax.jacfwd``.
+    ``tests/test_stability.py`` checks it (in Torrance-Sparrow's ``shape_grad``)
+    against ``jax.jacfwd``.
     """
     sin2 = 1.0 - cos_i * cos_i
     ct2 = 1.0 - sin2 / (eta * eta)
