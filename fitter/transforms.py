@@ -49,15 +49,19 @@ def to_user(kind: str, z, lo: float, hi: float):
     return lo + (hi - lo) * s
 
 
-def to_unconstrained(kind: str, x, lo: float, hi: float, margin: float = EDGE):
-    """Coordinate z(x) (NumPy); x is moved ``margin`` of the range inside [lo, hi]."""
+def box_fraction(kind: str, x, lo: float, hi: float):
+    """Where x lies in [lo, hi], 0..1 (NumPy): linear, or in log for the log box.
+
+    This is sigmoid(z), the fraction the transforms are built on."""
     x = np.asarray(x, dtype=np.float64)
     if _is_log(kind):
-        a, b = np.log(lo), np.log(hi)
-        u = (np.log(np.maximum(x, lo)) - a) / (b - a)
-    else:
-        u = (x - lo) / (hi - lo)
-    u = np.clip(u, margin, 1.0 - margin)
+        return np.log(np.maximum(x, lo) / lo) / np.log(hi / lo)
+    return (x - lo) / (hi - lo)
+
+
+def to_unconstrained(kind: str, x, lo: float, hi: float, margin: float = EDGE):
+    """Coordinate z(x) (NumPy); x is moved ``margin`` of the range inside [lo, hi]."""
+    u = np.clip(box_fraction(kind, x, lo, hi), margin, 1.0 - margin)
     return np.log(u) - np.log1p(-u)
 
 

@@ -154,12 +154,12 @@ def test_channel_at_its_bound_among_live_coordinates_is_reported_not_raised():
     rng = np.random.default_rng(3)
     J = rng.normal(size=(200, 4))
     z = np.array([SATURATED_Z + 5.0, 0.3, -0.2, 0.1])
-    r = rng.normal(size=200) * 1e-3
+    s2 = 1e-6  # residual variance of residuals ~ 1e-3
     # As autodiff gives it: the slope in rho times the sigmoid's slope at z = 32.
     J[:, 0] *= 1.0 / (np.exp(z[0]) + 2.0 + np.exp(-z[0]))
-    assert _unidentifiable_at(spec, z, J, r, None) is None
+    assert _unidentifiable_at(spec, z, J, s2) is None
     J[:, 0] = 0.0  # no slope left even in rho: nothing says it is at the bound
-    keys, _ = _unidentifiable_at(spec, z, J, r, None)
+    keys, _ = _unidentifiable_at(spec, z, J, s2)
     assert keys == ["lambert.rho_d"]
 
 
@@ -200,9 +200,9 @@ def test_ambiguity_check_flags_only_what_a_quadratic_cost_cannot_explain():
                 (Block("oren_nayar.sigma", 1, "box", 0.0, 1.5),
                  Block("oren_nayar.rho_d", 1, "logit", 0.0, 1.0)))
     sigma, q = 0.01, chi2.ppf(AMBIGUOUS_LEVEL, 2)
-    z, J, r = np.zeros(2), np.eye(2) / sigma, np.zeros(10)
+    z, J = np.zeros(2), np.eye(2) / sigma
     edge = (np.array([0.98 * np.sqrt(q) * sigma, 0.0]), 0.5 * 0.98**2 * q)
-    assert _ambiguous(spec, z, J, r, 1.0, 0.0, [edge]) is None
+    assert _ambiguous(spec, z, J, 1.0, 0.0, [edge]) is None
     far = (np.array([0.0, 2.0 * np.sqrt(q) * sigma]), 0.1)
-    keys, reasons = _ambiguous(spec, z, J, r, 1.0, 0.0, [edge, far])
+    keys, reasons = _ambiguous(spec, z, J, 1.0, 0.0, [edge, far])
     assert keys == ["oren_nayar.rho_d"] and "another start" in reasons[0]

@@ -58,29 +58,27 @@ MAX_STEPS = {"adam": 5000, "bfgs": 1000}
 DEFAULT_MAX_STEPS = 200
 
 
-class FitError(ValueError):
-    """A fit that cannot be set up (message says what to change)."""
-
-
-_COMPILED: dict = {}
-
 #: Another start within this joint confidence level of the best one, but
 #: beyond that region's reach in a parameter, makes that parameter
 #: unidentifiable (``_ambiguous``).
 AMBIGUOUS_LEVEL = 0.95
-
 #: Rounds of hold-and-refit after a fit (``_Job.finish``).
 MAX_REFITS = 2
-
 #: The zero-column check at the start first looks at every 8th fitted pixel.
 START_CHECK_STRIDE = 8
-
 #: XLA options for the solver loops. Loop-invariant code motion hoists the
 #: parameter-independent parts of every sample (masks, G, 1/cos) out of the
 #: solver's while loop into separate, unfused passes over (lights, pixels,
 #: samples) arrays: measured +30 ms per LM fit at 256^2 with 4x4 samples
 #: (fixed cost 45 -> 15 ms), for no gain per step.
 SOLVE_XLA_OPTIONS = {"xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
+
+
+class FitError(ValueError):
+    """A fit that cannot be set up (message says what to change)."""
+
+
+_COMPILED: dict = {}
 
 
 def _jacobian_r(spec: Spec, z, data):
@@ -532,8 +530,9 @@ class _Job:
         for round_ in range(MAX_REFITS + 1 if identifiability else 0):
             if not np.isfinite(cost):
                 break
-            unid = _unidentifiable_at(spec, z, J, r, self.noise_sigma)
-            ambiguous = _ambiguous(spec, z, J, r, self.noise_sigma, cost, alternatives)
+            s2 = self.residual_variance(data, r, spec)
+            unid = _unidentifiable_at(spec, z, J, s2)
+            ambiguous = _ambiguous(spec, z, J, s2, cost, alternatives)
             if unid is None or round_ == MAX_REFITS:
                 # Out of rounds: what is still unidentifiable is marked, not held.
                 marked = [list(a) + list(b) for a, b in zip(unid or ([], []),
@@ -573,14 +572,22 @@ class _Job:
         return self._report(b, spec, data, z, code, iters, cost, J, r, warnings,
                             unidentifiable, t_start, starts)
 
+    def residual_variance(self, data: Data, r, spec: Spec) -> float:
+        """s^2 of the covariance s^2 (J^T J)^-1: 1 when the residuals were divided
+        by a known noise sigma, else chi^2 per degree of freedom (values with
+        weight 0 are not observations)."""
+        if self.noise_sigma is not None:
+            return 1.0
+        dof = max(int(np.count_nonzero(np.asarray(data.weights))) - spec.n, 1)
+        return float(r @ r) / dof
+
     def _report(self, b, spec, data, z, code, iters, cost, J, r, warnings, unidentifiable,
                 t_start, starts) -> FitResult:
         status = _status(code, z, cost)
         message = optx.RESULTS._index_to_message[code] or "solver tolerances met"
-        n_obs = int(np.count_nonzero(np.asarray(data.weights)))
-        dof = max(n_obs - spec.n, 1)
+        dof = max(int(np.count_nonzero(np.asarray(data.weights))) - spec.n, 1)
         chi2 = float(r @ r)
-        s2 = 1.0 if self.noise_sigma is not None else chi2 / dof
+        s2 = self.residual_variance(data, r, spec)
         if self.noise_sigma is not None and status == "converged" and chi2 / dof > MAX_REDUCED_CHI2:
             status = "failed"
             message = (f"poor fit: chi^2/dof = {chi2 / dof:.3g} > {MAX_REDUCED_CHI2} for the "
@@ -596,14 +603,13 @@ class _Job:
                      "(fit with identifiability=True to hold it)")
             sd = np.zeros_like(sd)
         params = _user(spec, z, data)
-        z = np.asarray(z, dtype=np.float64)
+        at_edge = _frame(spec, z)[3]
         stderr, coords = {}, []
         for blk, sl in spec.slices():
             if blk.key not in unidentifiable:  # marked ambiguous: no error to give
                 stderr[blk.key] = sd[sl] if blk.size == 3 else float(sd[sl][0])
             coords += [blk.key] if blk.size == 1 else [f"{blk.key}[{i}]" for i in range(3)]
-            u = _box_fraction(blk, params[blk.key])
-            if np.any((u < AT_BOUND) | (u > 1 - AT_BOUND)):
+            if np.any(at_edge[sl]):
                 warnings.append(f"{blk.key} = {_fmt(params[blk.key])} is at the bound of "
                                 f"[{blk.lower:g}, {blk.upper:g}]; its standard error is half "
                                 "a +-1 sigma interval cut by that bound")
@@ -698,22 +704,20 @@ def _dead_columns(spec: Spec, z, J) -> np.ndarray:
     is not mistaken for a parameter without effect.
     """
     # float64 throughout: in float32 the 1e-300 guard below would round to 0.
-    z = np.asarray(z, dtype=np.float64)
+    _, dxdz, scale, _ = _frame(spec, z)
     J = np.asarray(J, dtype=np.float64)
-    effect = np.zeros(J.shape[1])
-    for b, sl in spec.slices():
-        x = transforms.to_user(b.transform, z[sl], b.lower, b.upper)
-        dxdz = transforms.derivative(b.transform, z[sl], b.lower, b.upper)
-        scale = transforms.natural_scale(b.transform, x, b.lower, b.upper)
-        effect[sl] = np.linalg.norm(J[:, sl], axis=0) / np.maximum(dxdz, 1e-300) * scale
+    effect = np.linalg.norm(J, axis=0) / np.maximum(dxdz, 1e-300) * scale
     # A coordinate run off to a box edge has no slope left; that is "at bound"
     # (reported as such), not evidence that the parameter has no effect.
-    saturated = np.abs(z) > SATURATED_Z
+    saturated = np.abs(np.asarray(z, dtype=np.float64)) > SATURATED_Z
     return (effect <= ZERO_COLUMN * max(effect.max(), 1e-300)) & ~saturated
 
 
-def _unidentifiable_at(spec, z, J, r, noise_sigma):
-    """Blocks without usable information at ``z``: (keys, reasons) or None."""
+def _unidentifiable_at(spec, z, J, s2: float):
+    """Blocks without usable information at ``z``: (keys, reasons) or None.
+
+    ``s2``: the residual variance of the covariance (``_Job.residual_variance``).
+    """
     keys, reasons = [], []
     J = np.asarray(J, dtype=np.float64)
     if not np.all(np.isfinite(J)):
@@ -741,8 +745,6 @@ def _unidentifiable_at(spec, z, J, r, noise_sigma):
                     reasons.append(f"{k} is not separable from the other parameters "
                                    f"(Jacobian condition number {cond:.2g}); held at its "
                                    "initial value")
-    dof = max(r.size - J.shape[1], 1)
-    s2 = 1.0 if noise_sigma is not None else float(r @ r) / dof
     if s2 > 0 and not keys:
         _, _, span = _covariance(spec, z, J, s2)
         loose = span > MAX_SPAN
@@ -753,7 +755,7 @@ def _unidentifiable_at(spec, z, J, r, noise_sigma):
     return (keys, reasons) if keys else None
 
 
-def _ambiguous(spec: Spec, z, J, r, noise_sigma, cost: float, alternatives):
+def _ambiguous(spec: Spec, z, J, s2: float, cost: float, alternatives):
     """Parameters other starts place elsewhere at an equally good cost: (keys, reasons) or None.
 
     The covariance at the best start is a local, linear statement. Another
@@ -771,7 +773,6 @@ def _ambiguous(spec: Spec, z, J, r, noise_sigma, cost: float, alternatives):
                     if np.isfinite(ca) and np.all(np.isfinite(za))]
     if not alternatives:
         return None
-    s2 = 1.0 if noise_sigma is not None else float(r @ r) / max(r.size - spec.n, 1)
     if not s2 > 0:
         return None
     cov, sd, _ = _covariance(spec, z, J, s2)
@@ -780,12 +781,12 @@ def _ambiguous(spec: Spec, z, J, r, noise_sigma, cost: float, alternatives):
     # sqrt(level) standard errors from the best in any coordinate (the
     # projection of the ellipsoid): beyond that is evidence, not chance.
     reach = np.sqrt(level * np.diag(cov))
-    x = _user_flat(spec, z)
+    x = _frame(spec, z)[0]
     keys, reasons = [], []
     for za, ca in alternatives:
         if ca - cost > 0.5 * s2 * level:
             continue
-        xa = _user_flat(spec, za)
+        xa = _frame(spec, za)[0]
         far = np.abs(_fit_coordinates(spec, z, za)) > reach
         for key in _blocks_of(spec, far):
             if key in keys:
@@ -798,27 +799,27 @@ def _ambiguous(spec: Spec, z, J, r, noise_sigma, cost: float, alternatives):
     return (keys, reasons) if keys else None
 
 
+def _frame(spec: Spec, z):
+    """Per coordinate at ``z``, float64 (n,) each: the user value x, dx/dz, the
+    natural scale (``transforms.natural_scale``) and whether x is at a bound
+    (within ``AT_BOUND`` of its box's edge, in log for a log box)."""
+    z = np.asarray(z, dtype=np.float64)
+    parts = []
+    for b, sl in spec.slices():
+        x = transforms.to_user(b.transform, z[sl], b.lower, b.upper)
+        u = transforms.box_fraction(b.transform, x, b.lower, b.upper)
+        parts.append((x, transforms.derivative(b.transform, z[sl], b.lower, b.upper),
+                      transforms.natural_scale(b.transform, x, b.lower, b.upper),
+                      (u < AT_BOUND) | (u > 1.0 - AT_BOUND)))
+    return tuple(np.concatenate([np.atleast_1d(p[i]) for p in parts]) for i in range(4))
+
+
 def _fit_coordinates(spec: Spec, z, za) -> np.ndarray:
     """``za - z`` in the coordinates of ``_covariance`` at ``z``: z, or
     x / natural_scale for a value at its bound."""
-    z, za = np.asarray(z, dtype=np.float64), np.asarray(za, dtype=np.float64)
-    d = za - z
-    for b, sl in spec.slices():
-        x = transforms.to_user(b.transform, z[sl], b.lower, b.upper)
-        xa = transforms.to_user(b.transform, za[sl], b.lower, b.upper)
-        u = _box_fraction(b, x)
-        edge = (u < AT_BOUND) | (u > 1.0 - AT_BOUND)
-        scale = transforms.natural_scale(b.transform, x, b.lower, b.upper)
-        d[sl] = np.where(edge, (xa - x) / scale, d[sl])
-    return d
-
-
-def _user_flat(spec: Spec, z) -> np.ndarray:
-    """User values of every coordinate (n,), float64."""
-    z = np.asarray(z, dtype=np.float64)
-    return np.concatenate([np.atleast_1d(transforms.to_user(b.transform, z[sl], b.lower,
-                                                            b.upper))
-                           for b, sl in spec.slices()])
+    x, _, scale, edge = _frame(spec, z)
+    d = np.asarray(za, dtype=np.float64) - np.asarray(z, dtype=np.float64)
+    return np.where(edge, (_frame(spec, za)[0] - x) / scale, d)
 
 
 def _covariance(spec: Spec, z, J, s2: float):
@@ -838,43 +839,27 @@ def _covariance(spec: Spec, z, J, s2: float):
     Jacobian's R factor (same J^T J).
     """
     z = np.asarray(z, dtype=np.float64)
+    x, dxdz, scale, edge = _frame(spec, z)
     J = np.array(J, dtype=np.float64)
-    edges, scales = [], []
-    for b, sl in spec.slices():
-        x = transforms.to_user(b.transform, z[sl], b.lower, b.upper)
-        dxdz = transforms.derivative(b.transform, z[sl], b.lower, b.upper)
-        scale = transforms.natural_scale(b.transform, x, b.lower, b.upper)
-        u = _box_fraction(b, x)
-        edge = (u < AT_BOUND) | (u > 1.0 - AT_BOUND)
-        cols = np.arange(sl.start, sl.stop)[edge]
-        J[:, cols] *= (scale / np.where(dxdz > 0, dxdz, np.inf))[edge]
-        edges.append(edge)
-        scales.append(scale)
+    J[:, edge] *= (scale / np.where(dxdz > 0, dxdz, np.inf))[edge]
     cov = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
     blind = np.linalg.norm(J, axis=0) == 0
     cov[blind, :] = cov[:, blind] = 0.0
     cov[blind, blind] = np.inf
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    stderr, span = np.zeros(spec.n), np.zeros(spec.n)
-    for (b, sl), edge, scale in zip(spec.slices(), edges, scales):
-        zs, d = z[sl], np.where(np.isfinite(sd[sl]), sd[sl], 1e300)
-        lo = transforms.to_user(b.transform, zs - d, b.lower, b.upper)
-        hi = transforms.to_user(b.transform, zs + d, b.lower, b.upper)
-        x = transforms.to_user(b.transform, zs, b.lower, b.upper)
-        lo = np.where(edge, np.clip(x - d * scale, b.lower, b.upper), lo)
-        hi = np.where(edge, np.clip(x + d * scale, b.lower, b.upper), hi)
-        stderr[sl] = np.where(np.isfinite(sd[sl]), 0.5 * (hi - lo), np.inf)
-        span[sl] = np.where(np.isfinite(sd[sl]), _box_fraction(b, hi) - _box_fraction(b, lo),
-                            1.0)
-    return cov, stderr, span
-
-
-def _box_fraction(b: Block, x):
-    """Where ``x`` lies in the box of ``b``, 0..1 (in log for a log box)."""
-    x = np.asarray(x, dtype=np.float64)
-    if b.transform == "log":
-        return np.log(np.maximum(x, b.lower) / b.lower) / np.log(b.upper / b.lower)
-    return (x - b.lower) / (b.upper - b.lower)
+    finite = np.isfinite(sd)
+    d = np.where(finite, sd, 1e300)
+    lo, hi = np.empty(spec.n), np.empty(spec.n)
+    for b, sl in spec.slices():
+        lo[sl] = transforms.to_user(b.transform, z[sl] - d[sl], b.lower, b.upper)
+        hi[sl] = transforms.to_user(b.transform, z[sl] + d[sl], b.lower, b.upper)
+        lo[sl] = np.where(edge[sl], np.clip(x[sl] - d[sl] * scale[sl], b.lower, b.upper), lo[sl])
+        hi[sl] = np.where(edge[sl], np.clip(x[sl] + d[sl] * scale[sl], b.lower, b.upper), hi[sl])
+    span = np.concatenate([np.atleast_1d(
+        transforms.box_fraction(b.transform, hi[sl], b.lower, b.upper)
+        - transforms.box_fraction(b.transform, lo[sl], b.lower, b.upper))
+        for b, sl in spec.slices()])
+    return cov, np.where(finite, 0.5 * (hi - lo), np.inf), np.where(finite, span, 1.0)
 
 
 def _all_held(init_full, unidentifiable, warnings, n_pix, n_drop, tc, tr) -> FitResult:
