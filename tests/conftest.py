@@ -53,6 +53,15 @@ def spherical_quadrature(axis, n_theta, n_phi, theta_max=np.pi / 2):
     return dirs.reshape(-1, 3), weights.reshape(-1)
 
 
+def fresnel_reference(cos_i, eta):
+    """The lecture's unpolarised F_r, written independently of ``fitter`` (NumPy,
+    no total-internal-reflection branch): cos_t = sqrt(1 - (1 - cos_i^2)/eta^2)."""
+    cos_t = np.sqrt(1.0 - (1.0 - cos_i**2) / eta**2)
+    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
+    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+    return 0.5 * (rp**2 + rs**2)
+
+
 @pytest.fixture(scope="session")
 def quadrature():
     return spherical_quadrature

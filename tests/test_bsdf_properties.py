@@ -25,7 +25,7 @@ import pytest
 import fitter
 from fitter.bsdf import LOBES
 from fitter.bsdf.microfacet import beckmann_d_lecture
-from conftest import spherical_quadrature
+from conftest import fresnel_reference, spherical_quadrature
 
 #: Quadrature error allowed on a directional-hemispherical reflectance. The
 #: measured |Q_N - Q_2N| reach 7e-5 where the horizon cuts a broad lobe (a kink
@@ -202,14 +202,6 @@ def beckmann_dn(cos_h, m):
     return np.exp(-tan2 / m**2) / (np.pi * m**2 * cos_h**4)
 
 
-def fresnel(cos_i, eta):
-    """Lecture's unpolarised F_r; cos_t = sqrt(1 - (1 - cos_i^2)/eta^2)."""
-    cos_t = np.sqrt(1.0 - (1.0 - cos_i**2) / eta**2)
-    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    return 0.5 * (rp**2 + rs**2)
-
-
 def smith_g1(cos_w, m):
     """Walter et al. (2007) eq. 27, as in Mitsuba's Beckmann."""
     a = cos_w / (m * np.sqrt(1.0 - cos_w**2))
@@ -230,7 +222,7 @@ def test_torrance_sparrow_matches_closed_form(geometry, m, eta):
     else:
         g = smith_g1(ci, m) * smith_g1(co, m)
     rho_s = 0.9
-    expected = rho_s * beckmann_dn(ch, m) * g * fresnel(oh, eta) / (4.0 * ci * co)
+    expected = rho_s * beckmann_dn(ch, m) * g * fresnel_reference(oh, eta) / (4.0 * ci * co)
     got = _eval("torrance_sparrow", {"m": m, "eta": eta, "rho_s": rho_s},
                 {"geometry": geometry}, wi, wo)
     np.testing.assert_allclose(got, expected, rtol=REL_TOL, atol=ABS_FLOOR)
@@ -262,7 +254,7 @@ def test_torrance_sparrow_white_furnace(geometry, m):
     away from grazing, where G ~ 1 and D_n is normalised."""
     def f_fresnel(wi, wo):
         h = (wi + wo) / np.linalg.norm(wi + wo, axis=-1, keepdims=True)
-        return fresnel(np.clip(h @ wi, 0.0, 1.0), 4.0)
+        return fresnel_reference(np.clip(h @ wi, 0.0, 1.0), 4.0)
 
     params = {"m": m, "eta": 4.0, "rho_s": 1.0}
     for theta_i in THETA_I:

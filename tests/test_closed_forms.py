@@ -23,7 +23,7 @@ import pytest
 import fitter
 from fitter.bsdf import LOBES
 from fitter.bsdf.fresnel import fresnel_dielectric, refract
-from conftest import spherical_quadrature
+from conftest import fresnel_reference, spherical_quadrature
 
 #: The quadrature used by the energy tests, at its resolution there.
 N_THETA = 100
@@ -83,14 +83,6 @@ def test_oren_nayar_sigma_zero_is_lambert():
 
 # --- Fresnel ---------------------------------------------------------------
 
-def fresnel_lecture(cos_i, eta):
-    """The lecture's F_r, written independently (NumPy, no TIR handling)."""
-    cos_t = np.sqrt(1.0 - (1.0 - cos_i**2) / eta**2)
-    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    return 0.5 * (rp**2 + rs**2)
-
-
 def F(cos_i, eta):
     return np.asarray(fresnel_dielectric(jnp.asarray(cos_i, dtype=jnp.float64),
                                          jnp.asarray(eta, dtype=jnp.float64)))
@@ -103,7 +95,7 @@ def test_fresnel_normal_grazing_and_general():
         assert F(0.0, eta) == 1.0, eta
     c = np.linspace(0.0, 1.0, 101)
     for eta in (1.2, 1.5, 2.5, 4.0):
-        np.testing.assert_allclose(F(c, eta), fresnel_lecture(c, eta), rtol=EXACT, atol=EXACT)
+        np.testing.assert_allclose(F(c, eta), fresnel_reference(c, eta), rtol=EXACT, atol=EXACT)
         assert np.all((F(c, eta) >= 0) & (F(c, eta) <= 1))
 
 
@@ -124,7 +116,7 @@ def test_total_internal_reflection_and_continuity(eta):
     assert all(g > 0 for g in gaps) and gaps[-1] < 1e-3
     assert all(b < a for a, b in zip(gaps, gaps[1:]))
     inside = np.linspace(cos_c + 1e-3, 1.0, 50)
-    np.testing.assert_allclose(F(inside, eta), fresnel_lecture(inside, eta), rtol=EXACT)
+    np.testing.assert_allclose(F(inside, eta), fresnel_reference(inside, eta), rtol=EXACT)
     grad = jax.vmap(jax.grad(fresnel_dielectric, argnums=(0, 1)), in_axes=(0, None))(
         jnp.linspace(0.0, 1.0, 64), jnp.asarray(eta))
     assert all(np.all(np.isfinite(np.asarray(g))) for g in grad)
@@ -192,7 +184,7 @@ def test_lossless_dielectric_sphere_conserves_radiance(eta):
                          environment=fitter.Environment(type="constant", radiance=tuple(L)))
     hit, rho2 = _ortho_hits(scene)
     cos_i = np.sqrt(np.where(hit, 1.0 - rho2 / r**2, 1.0))
-    Fr = fresnel_lecture(cos_i, eta)
+    Fr = fresnel_reference(cos_i, eta)
     for bounces in (0, 3, 64):
         img = np.asarray(fitter.render({"dielectric.eta": eta, "dielectric.attenuation": 1.0,
                                         "dielectric.bounces": bounces}, scene))
@@ -219,7 +211,7 @@ def test_absorbing_dielectric_sphere_series(eta):
                                     "dielectric.bounces": bounces}, scene))
     hit, rho2 = _ortho_hits(scene)
     cos_i = np.sqrt(np.where(hit, 1.0 - rho2 / r**2, 1.0))
-    Fr = fresnel_lecture(cos_i, eta)[..., None]
+    Fr = fresnel_reference(cos_i, eta)[..., None]
     cos_t = np.sqrt(1.0 - (1.0 - cos_i**2) / eta**2)
     T = c ** (2.0 * r * cos_t)[..., None]
     series = Fr + (1 - Fr) ** 2 * T * (1 - (Fr * T) ** (bounces + 1)) / (1 - Fr * T)
