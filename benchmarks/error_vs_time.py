@@ -90,35 +90,18 @@ class _Problem:
     """The fit problem exactly as ``fitter.fit`` sets it up (interior pixels, l2)."""
 
     def __init__(self, job, base, target, init):
-        import jax
-        import jax.numpy as jnp
+        from fitter.fit._fit import _Job
 
-        from fitter.fit import select_pixels
-        from fitter.fit._problem import Block, Data, Spec
-        from fitter.render import _renderer
-
-        mat = job.material
-        self.renderer = _renderer(job.scene, mat, jnp.dtype(jnp.float64), base)
-        rows, _, flat = select_pixels(self.renderer, target, "interior", None, None)
-        specs = mat.param_specs()
-        self.free = [k for k, s in specs.items() if s.free and k not in job.fixed]
-        blocks = tuple(Block(k, specs[k].size, specs[k].transform, specs[k].lower,
-                             specs[k].upper) for k in self.free)
-        self.init_full = mat.full_params({**init, **job.fixed})
-        fixed = {k: jnp.asarray(v) for k, v in self.init_full.items() if k not in self.free}
-        # On the device once, as fitter.fit does: NumPy arrays here would be
-        # copied to the device on every traced step.
-        geo = jax.tree_util.tree_map(jnp.asarray, self.renderer.geometry.subset(rows)._replace(
-            pixel_index=None, background_image=None))
-        self.spec = Spec(mat, self.renderer.env_type, blocks, "l2", 0.01)
-        self.data = Data(geo, self.renderer.env, self.renderer.sphere,
-                         jnp.asarray(flat[rows]), jnp.ones((rows.size, 3)), fixed)
-        self.n_pixels = int(rows.size)
+        fit_job = _Job.make(target[None], job.scene, job.material, init=init, fixed=job.fixed,
+                            base_dir=base)
+        self.renderer, self.init_full = fit_job.renderer, fit_job.init_full
+        self.free = [b.key for b in fit_job.blocks]
+        self.spec, self.data = fit_job.spec, fit_job.data(0)
+        self.n_pixels = int(fit_job.rows.size)
+        self._z0 = fit_job.z_init()
 
     def z0(self):
-        from fitter.fit._problem import z_from_params
-
-        return z_from_params(self.spec, self.init_full)
+        return self._z0
 
     def params(self, z):
         import jax.numpy as jnp
