@@ -156,11 +156,12 @@ def loss_gradients(scene, material, target, points, dtype) -> list[bool]:
     def loss(p, rest):
         return 0.5 * jnp.sum(((r.active({**rest, **p}) - t) * w) ** 2)
 
+    grad = jax.jit(jax.grad(loss))  # traced once for the three points
     out = []
     for pt in points:
         p = {k: jnp.asarray(pt[k], dtype=dtype) for k in free}
-        rest = {k: v for k, v in pt.items() if k not in free}
-        g = jax.grad(loss)(p, rest)
+        rest = {k: jnp.asarray(v, dtype=dtype) for k, v in pt.items() if k not in free}
+        g = grad(p, rest)
         out.append(all(_finite(v) for v in g.values()))
     return out
 
