@@ -13,9 +13,10 @@ from __future__ import annotations
 import numpy as np
 
 from .scene import Scene
+from .errors import FitterError
 
 
-class SceneError(ValueError):
+class SceneError(FitterError):
     """A scene that cannot be rendered (message names the field)."""
 
 

@@ -31,14 +31,14 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .config import ConfigError, Job, dumps_toml, job_to_dict, load_config, solvers
+from .config import Job, dumps_toml, job_to_dict, load_config, solvers
 from .imageio import ImageError, current_umask
-from .material import MaterialError
+from .errors import FitterError
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
 
 
-class UsageError(ValueError):
+class UsageError(FitterError):
     """A command-line mistake (message is one sentence)."""
 
 
@@ -110,14 +110,7 @@ def _sigterm_as_interrupt():
 
 
 def _is_user_error(exc: BaseException) -> bool:
-    kinds: tuple[type, ...] = (ConfigError, ImageError, MaterialError, UsageError)
-    fit_mod = sys.modules.get("fitter.fit._fit")
-    if fit_mod is not None:
-        kinds += (fit_mod.FitError,)
-    mitsuba_mod = sys.modules.get("fitter.mitsuba._variant")
-    if mitsuba_mod is not None:  # Mitsuba cannot render this request (says what to change)
-        kinds += (mitsuba_mod.MitsubaError,)
-    return isinstance(exc, kinds)
+    return isinstance(exc, FitterError)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -275,7 +268,7 @@ def read_params(path: str, job: Job) -> dict[str, Any]:
         numeric[key] = value
     try:
         full = job.material.full_params(numeric)
-    except (MaterialError, ValueError, TypeError) as exc:
+    except (ValueError, TypeError) as exc:
         raise UsageError(f"{path}: {exc}") from None
     return full
 

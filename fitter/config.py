@@ -32,6 +32,7 @@ from typing import Any, Mapping
 from .bsdf import LOBES
 from .material import Material, MaterialError
 from .scene import Camera, DirectionalLight, Environment, PointLight, Scene, Sphere
+from .errors import FitterError
 
 FALLBACK_SOLVERS = ("levenberg_marquardt", "dogleg", "gauss_newton", "bfgs", "adam")
 LOSSES = ("l2", "huber", "cauchy")
@@ -42,7 +43,7 @@ LIGHT_TYPES = ("point", "directional")
 ENVIRONMENT_TYPES = ("black", "constant", "envmap")
 
 
-class ConfigError(ValueError):
+class ConfigError(FitterError):
     """A config a user must fix; the message is one sentence naming file and key."""
 
 

@@ -12,8 +12,10 @@ import tempfile
 
 import numpy as np
 
+from .errors import FitterError
 
-class ImageError(ValueError):
+
+class ImageError(FitterError):
     """An image that cannot be used (message names the file and the problem)."""
 
 

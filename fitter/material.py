@@ -15,9 +15,10 @@ import numpy as np
 
 from .bsdf import LOBES
 from .bsdf.base import Lobe, Param
+from .errors import FitterError
 
 
-class MaterialError(ValueError):
+class MaterialError(FitterError):
     """A material or parameter specification a user must fix (message names the key)."""
 
 

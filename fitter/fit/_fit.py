@@ -28,6 +28,7 @@ from ._problem import LOSSES, Block, Data, Spec, params_from_z, residuals, z_fro
 from ._solvers import SOLVERS, make_solver
 from ._starts import starts as make_starts
 from .result import FitResult
+from ..errors import FitterError
 
 #: A column of the Jacobian this much smaller than the largest one means the
 #: image does not depend on that parameter at all.
@@ -74,7 +75,7 @@ START_CHECK_STRIDE = 8
 SOLVE_XLA_OPTIONS = {"xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
 
 
-class FitError(ValueError):
+class FitError(FitterError):
     """A fit that cannot be set up (message says what to change)."""
 
 

@@ -15,6 +15,8 @@ import os
 import re
 import sys
 
+from ..errors import FitterError
+
 ENV_VAR = "FITTER_MITSUBA_VARIANT"
 CPU_VARIANT = "llvm_ad_rgb"
 GPU_VARIANT = "cuda_ad_rgb"
@@ -26,7 +28,7 @@ _LLVM_FIX = ("install a newer LLVM (`apt-get install -y libllvm19`) or set DRJIT
              "to a libLLVM.so of version >= 16")
 
 
-class MitsubaError(RuntimeError):
+class MitsubaError(FitterError, RuntimeError):
     """Mitsuba cannot render this request (message says what to change)."""
 
 
