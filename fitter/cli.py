@@ -10,9 +10,9 @@ Every command reads one TOML job (``fitter.config``). Exit codes:
   or ``"failed"``); all outputs are still written.
 
 Outputs of ``fitter fit`` go to ``--out`` (default ``out/<config stem>``
-relative to the working directory), written into a temporary sibling folder
-that is renamed into place at the end, so an interrupted or failed run leaves
-no half-written folder. ``--json`` prints exactly one JSON document on stdout;
+relative to the working directory), staged and swapped in by
+``fitter.outdir``: only a folder fitter wrote is ever replaced, and an
+interrupted or failed run leaves no half-written folder. ``--json`` prints exactly one JSON document on stdout;
 progress and log lines go to stderr (silenced by ``--quiet``).
 """
 
@@ -32,7 +32,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from .config import Job, dumps_toml, job_to_dict, load_config, solvers
-from .imageio import ImageError, current_umask
+from .imageio import ImageError
+from .outdir import staged_dir
 from .errors import FitterError
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
@@ -279,38 +280,6 @@ def truth_params(job: Job) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- outputs
-
-
-@contextlib.contextmanager
-def staged_dir(out: str):
-    """Yield a temporary folder next to ``out``; rename it to ``out`` on success.
-
-    On any failure the temporary folder is removed and ``out`` is untouched.
-    An existing ``out`` folder is replaced only once the new one is complete.
-    """
-    out = os.path.abspath(out)
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise UsageError(f"{out}: exists and is not a folder; choose another --out")
-    parent = os.path.dirname(out)
-    made_parent = not os.path.isdir(parent)
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(out)}.tmp-", dir=parent)
-    try:
-        os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp folders are 0700
-        yield tmp
-        if os.path.isdir(out):
-            old = tempfile.mkdtemp(prefix=f".{os.path.basename(out)}.old-", dir=parent)
-            os.rename(out, os.path.join(old, "x"))
-            os.rename(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if made_parent:
-            with contextlib.suppress(OSError):
-                os.removedirs(parent)
-        raise
 
 
 def _plain(value):

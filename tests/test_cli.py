@@ -16,6 +16,7 @@ import pytest
 import fitter
 from fitter import imageio
 from fitter.cli import main
+from fitter.outdir import MARKER
 from fitter.config import dumps_toml, job_to_dict, load_config
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir)
@@ -98,8 +99,8 @@ def test_fit_json_is_the_result_contract_and_recovers_a_forward_model_target(
     assert "validation" not in result
     for key, te in result["truth_error"].items():
         assert np.max(te["abs"]) < SELF_FIT_ABS, (key, te)
-    assert sorted(os.listdir(out)) == ["config.toml", "fit.exr", "report.png", "residual.exr",
-                                       "result.json"]
+    assert sorted(os.listdir(out)) == [MARKER, "config.toml", "fit.exr", "report.png",
+                                       "residual.exr", "result.json"]
     with open(out / "result.json") as fh:
         assert json.load(fh) == result
     # fit.exr and residual.exr add up to the target
@@ -115,6 +116,7 @@ def test_fit_json_is_the_result_contract_and_recovers_a_forward_model_target(
 def test_fit_human_output_and_an_existing_out_folder_is_replaced(small, tmp_path, capsys):
     out = tmp_path / "res"
     out.mkdir()
+    (out / MARKER).write_text("{}")  # an earlier fitter output (anything else is refused)
     (out / "stale.txt").write_text("old")
     code, stdout, err = _run(capsys, "fit", small, "--out", out)
     assert code == 0, err
@@ -273,7 +275,7 @@ def test_input_errors_exit_2_with_one_sentence_and_no_output(small, tmp_path, ca
 
 
 def test_staged_dir_leaves_nothing_on_failure_and_keeps_an_existing_folder(tmp_path):
-    from fitter.cli import staged_dir
+    from fitter.outdir import staged_dir
 
     out = tmp_path / "a" / "res"
     with pytest.raises(RuntimeError):
@@ -284,6 +286,7 @@ def test_staged_dir_leaves_nothing_on_failure_and_keeps_an_existing_folder(tmp_p
     assert not os.path.exists((tmp_path / "seen").read_text())
     assert not (tmp_path / "a").exists()
     out.mkdir(parents=True)
+    (out / MARKER).write_text("{}")  # an earlier fitter output: replaceable
     (out / "keep.txt").write_text("old")
     with pytest.raises(KeyboardInterrupt):
         with staged_dir(str(out)):
