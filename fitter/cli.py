@@ -1,19 +1,23 @@
 """The ``fitter`` command line: fit, synth, validate, render, bench.
 
-Every command reads one TOML job (``fitter.config``). Exit codes:
+Every command reads one TOML job (``fitter.config``); ``fitter fit`` runs it
+through ``fitter.pipeline`` and this module only parses, reads, writes and
+prints. Exit codes:
 
 * 0: done (for ``fit``: the fit converged);
 * 1: an unexpected internal error (with a traceback);
-* 2: bad input (config, image, parameters, command line): one sentence on
-  stderr naming the file/key/value, and no output written;
+* 2: bad input (config, image, parameters, command line, output folder): one
+  sentence on stderr naming the file/key/value, and no output written;
 * 3: ``fit`` ran but the fit did not converge (``status`` is ``"max_steps"``
   or ``"failed"``); all outputs are still written.
 
 Outputs of ``fitter fit`` go to ``--out`` (default ``out/<config stem>``
 relative to the working directory), staged and swapped in by
 ``fitter.outdir``: only a folder fitter wrote is ever replaced, and an
-interrupted or failed run leaves no half-written folder. ``--json`` prints exactly one JSON document on stdout;
-progress and log lines go to stderr (silenced by ``--quiet``).
+interrupted or failed run leaves no half-written folder. ``--json`` prints
+exactly one JSON document on stdout; progress and log lines go to stderr
+(silenced by ``--quiet``). JAX, Mitsuba and the config reader are imported
+only once a command runs, so ``--help`` and usage errors answer at once.
 """
 
 from __future__ import annotations
@@ -21,19 +25,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import math
 import os
 import shutil
 import sys
 import tempfile
 import time
-from typing import Any, Mapping, Sequence
+from typing import Any, Sequence
 
-import numpy as np
-
-from .config import Job, dumps_toml, job_to_dict, load_config, solvers
-from .imageio import ImageError
-from .outdir import staged_dir
 from .errors import FitterError
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
@@ -57,28 +55,24 @@ def main(argv: Sequence[str] | None = None) -> int:
             args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse printed usage and the reason
         return EXIT_OK if exc.code == 0 else EXIT_INPUT
-    _enable_compilation_cache()
     try:
         with _sigterm_as_interrupt():
             return args.run(args)
     except KeyboardInterrupt:
         print("fitter: interrupted", file=sys.stderr)
         return 130
-    except Exception as exc:
-        if _is_user_error(exc):
-            print(f"fitter: error: {exc}", file=sys.stderr)
-            return EXIT_INPUT
-        raise
+    except FitterError as exc:
+        print(f"fitter: error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
 
 
 def _enable_compilation_cache() -> None:
     """Keep compiled solvers on disk, so a repeated job skips XLA compilation.
 
     Folder: ``$FITTER_CACHE_DIR``, else ``$XDG_CACHE_HOME/fitter/jax`` (default
-    ``~/.cache/fitter/jax``); ``FITTER_CACHE_DIR=""`` turns it off.
+    ``~/.cache/fitter/jax``); ``FITTER_CACHE_DIR=""`` turns it off. Set only
+    by the commands that compile (after their inputs are checked).
     """
-    import os
-
     folder = os.environ.get("FITTER_CACHE_DIR")
     if folder is None:
         base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
@@ -110,10 +104,6 @@ def _sigterm_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
-def _is_user_error(exc: BaseException) -> bool:
-    return isinstance(exc, FitterError)
-
-
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="fitter",
@@ -131,8 +121,8 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--out", metavar="DIR", help="output folder (default: out/<config stem>)")
     f.add_argument("--json", action="store_true",
                    help="print the result as one JSON document on stdout")
-    f.add_argument("--solver", help="override fit.solver (one of: %s)" % ", ".join(
-        _solver_names()))
+    f.add_argument("--solver", help="override fit.solver (levenberg_marquardt, ...; "
+                                    "see configs/README.md)")
     f.add_argument("--validate", action=argparse.BooleanOptionalAction, default=None,
                    help="re-render the fit with Mitsuba and compare (default: fit.validate)")
     f.add_argument("--quiet", action="store_true", help="no progress or log output")
@@ -179,13 +169,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _solver_names() -> tuple[str, ...]:
-    try:
-        return solvers()
-    except Exception:  # the help text must not depend on the engine importing
-        return ("levenberg_marquardt",)
-
-
 # --------------------------------------------------------------------------- console
 
 
@@ -211,32 +194,13 @@ class _Log:
 # --------------------------------------------------------------------------- inputs
 
 
-def read_target(path: str, scene) -> tuple[np.ndarray, np.ndarray]:
-    """Target (H, W, 3) linear float64 and (H, W) saturated mask, checked against ``scene``.
+def _load(path: str):
+    from .config import load_config
 
-    Raises ``ImageError`` naming the file for a missing/unreadable file, a
-    size other than the scene's, NaN/Inf or negative pixel values.
-    """
-    from .imageio import read_image
-
-    if os.path.isdir(path):
-        raise ImageError(f"{path}: is a folder, expected a target image file")
-    img, saturated = read_image(path, with_saturation=True)
-    h, w = img.shape[:2]
-    if (w, h) != (scene.width, scene.height):
-        raise ImageError(f"{path}: image is {w}x{h} pixels but the scene is "
-                         f"{scene.width}x{scene.height} (scene.width x scene.height)")
-    bad = ~np.isfinite(img)
-    if bad.any():
-        raise ImageError(f"{path}: {int(bad.any(axis=-1).sum())} pixel(s) are NaN or Inf")
-    if (img < 0).any():
-        raise ImageError(f"{path}: {int((img < 0).any(axis=-1).sum())} pixel(s) have negative "
-                         f"values (minimum {img.min():.3g}); a target must be linear "
-                         "radiance >= 0")
-    return img, saturated
+    return load_config(path)
 
 
-def _target_path(job: Job, override: str | None) -> str:
+def _target_path(job, override: str | None) -> str:
     if override:
         return os.path.abspath(override)
     if job.fit.target is None:
@@ -244,7 +208,16 @@ def _target_path(job: Job, override: str | None) -> str:
     return job.fit.target
 
 
-def read_params(path: str, job: Job) -> dict[str, Any]:
+def _image_out(path: str, flag: str = "--out") -> str:
+    """An image file to write; a folder or a missing parent is a usage error."""
+    path = os.path.abspath(path)
+    if os.path.isdir(path):
+        raise UsageError(f"{flag} {path}: is a folder; give an image file name "
+                         "(e.g. image.exr)")
+    return path
+
+
+def read_params(path: str, job) -> dict[str, Any]:
     """Parameters from a result.json (its ``params``) or a flat JSON dict, validated."""
     try:
         with open(path, encoding="utf-8") as fh:
@@ -274,48 +247,7 @@ def read_params(path: str, job: Job) -> dict[str, Any]:
     return full
 
 
-def truth_params(job: Job) -> dict[str, Any]:
-    """Complete parameters of the config's truth (fixed values where truth is silent)."""
-    return job.material.full_params({**job.fixed, **job.truth})
-
-
 # --------------------------------------------------------------------------- outputs
-
-
-def _plain(value):
-    """JSON-ready: arrays -> lists, numpy scalars -> float, NaN/Inf -> None."""
-    if isinstance(value, Mapping):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    return value
-
-
-def truth_error(params: Mapping[str, Any], stderr: Mapping[str, Any],
-                truth: Mapping[str, Any]) -> dict:
-    """Per truth parameter: ``truth``, ``abs`` |fit - truth|, ``rel`` abs/|truth|
-    (None where truth is 0) and ``sigmas`` abs/stderr when a stderr exists."""
-    out = {}
-    for key, t in truth.items():
-        t = np.asarray(t, dtype=np.float64)
-        f = np.asarray(params[key], dtype=np.float64)
-        err = np.abs(f - t)
-        entry = {"truth": t, "fit": f, "abs": err,
-                 "rel": np.where(t != 0, err / np.where(t != 0, np.abs(t), 1.0), np.nan)}
-        if key in stderr:
-            s = np.asarray(stderr[key], dtype=np.float64)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                entry["sigmas"] = np.where(s > 0, err / s, np.nan)
-        out[key] = _plain(entry)
-    return out
 
 
 def _write_json(path: str, data) -> None:
@@ -324,13 +256,36 @@ def _write_json(path: str, data) -> None:
         fh.write("\n")
 
 
+def write_outcome(folder: str, outcome, result: dict) -> None:
+    """Write an outcome's files into ``folder`` (a staged, still hidden folder)."""
+    from .config import dumps_toml, job_to_dict
+    from .imageio import write_image
+    from .report import make_report
+
+    job = outcome.job
+    write_image(os.path.join(folder, "fit.exr"), outcome.rendered)
+    write_image(os.path.join(folder, "residual.exr"), outcome.residual)
+    if outcome.validation is not None:
+        write_image(os.path.join(folder, "validation.exr"), outcome.validation.image)
+    _write_json(os.path.join(folder, "result.json"), result)
+    with open(os.path.join(folder, "config.toml"), "w", encoding="utf-8") as fh:
+        fh.write(dumps_toml(job_to_dict(job)))
+    make_report(os.path.join(folder, "report.png"), outcome,
+                title=f"{job.name}: {' + '.join(job.material.lobes)}")
+
+
 # --------------------------------------------------------------------------- commands
 
 
 def cmd_fit(args) -> int:
+    from . import pipeline
+    from .outdir import check_out, staged_dir
+
     log = _Log(args.quiet)
-    job = load_config(args.config)
+    job = _load(args.config)
     if args.solver is not None:
+        from .config import solvers
+
         if args.solver not in solvers():
             raise UsageError(f"--solver {args.solver!r} is not allowed; allowed values: "
                              + ", ".join(repr(n) for n in solvers()))
@@ -338,154 +293,66 @@ def cmd_fit(args) -> int:
     if args.validate is not None:
         job = job.replace(fit=job.fit.replace(validate=args.validate))
     target_path = _target_path(job, args.target)
-    target, saturated = read_target(target_path, job.scene)
+    target, saturated = pipeline.read_target(target_path, job.scene)
     job = job.replace(fit=job.fit.replace(target=target_path))  # config.toml records it
-    out = os.path.abspath(args.out or os.path.join("out", job.name))
-
+    out = check_out(args.out or os.path.join("out", job.name))  # before any fitting
+    _enable_compilation_cache()
     with staged_dir(out) as tmp:
-        result = run_fit(job, target, saturated, log)
-        result["target"] = target_path
-        result["config"] = job.path
-        fit_img = _render_fit(job, result["params"], log)
-        residual = target - fit_img
-        validation_img = None
-        if job.fit.validate:
-            validation_img, result["validation"] = _validate(job, result["params"], target,
-                                                             saturated, job.fit.validate_spp, log)
-        result = _plain(result)
+        outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
+                                   stage=log.stage)
+        result = outcome.to_dict()
         with log.stage("writing outputs"):
-            from .imageio import write_image
-            from .report import make_report
-
-            write_image(os.path.join(tmp, "fit.exr"), fit_img)
-            write_image(os.path.join(tmp, "residual.exr"), residual)
-            if validation_img is not None:
-                write_image(os.path.join(tmp, "validation.exr"), validation_img)
-            _write_json(os.path.join(tmp, "result.json"), result)
-            with open(os.path.join(tmp, "config.toml"), "w", encoding="utf-8") as fh:
-                fh.write(dumps_toml(job_to_dict(job)))
-            make_report(os.path.join(tmp, "report.png"), target=target, fit=fit_img,
-                        validation=validation_img, result=result,
-                        fitted=fitted_pixels(job, target, saturated),
-                        title=f"{job.name}: {' + '.join(job.material.lobes)}")
+            write_outcome(tmp, outcome, result)
     if args.json:
         print(json.dumps(result, indent=2, allow_nan=False))
     else:
-        _print_summary(log, result, out)
-    return EXIT_OK if result["status"] == "converged" else EXIT_NOT_CONVERGED
+        _print_summary(outcome, out)
+    return EXIT_OK if outcome.converged else EXIT_NOT_CONVERGED
 
 
-def run_fit(job: Job, target: np.ndarray, saturated: np.ndarray, log: _Log) -> dict:
-    """Run the fit engine on ``job`` and return the result dict (+ truth_error)."""
-    import jax.numpy as jnp
-
-    from . import fit as fit_engine
-
-    opts = job.fit
-    kwargs = {k: getattr(opts, k) for k in ("rtol", "atol", "max_steps")
-              if getattr(opts, k) is not None}
-    with log.stage(f"fitting ({opts.solver}, {opts.n_starts} start(s))"):
-        res = fit_engine.fit(
-            target, job.scene, job.material, init=job.init, fixed=job.fixed,
-            solver=opts.solver, mask=opts.mask, exclude=saturated if saturated.any() else None,
-            noise_sigma=opts.noise_sigma, loss=opts.loss, saturation=opts.saturation,
-            n_starts=opts.n_starts, dtype=getattr(jnp, opts.dtype), base_dir=job.base_dir,
-            **kwargs)
-    result = res.to_dict()
-    result["solver"] = opts.solver
-    if job.truth:
-        result["truth_error"] = truth_error(res.params, res.stderr, job.truth)
-    return result
-
-
-def fitted_pixels(job: Job, target: np.ndarray, saturated: np.ndarray) -> np.ndarray:
-    """(H, W) bool: the pixels the fit engine uses for this job and target."""
-    from .fit import select_pixels
-    from .render import Renderer
-
-    renderer = Renderer(job.scene, job.material, base_dir=job.base_dir)
-    rows, _, _ = select_pixels(renderer, target, job.fit.mask,
-                               saturated if saturated.any() else None, job.fit.saturation)
-    mask = np.zeros(job.scene.height * job.scene.width, dtype=bool)
-    mask[np.asarray(renderer.pixel_index)[rows]] = True
-    return mask.reshape(job.scene.height, job.scene.width)
-
-
-def _render_fit(job: Job, params: Mapping[str, Any], log: _Log) -> np.ndarray:
-    from .render import render
-
-    with log.stage("rendering the fit"):
-        full = job.material.full_params(params)
-        return np.asarray(render(full, job.scene, job.material, base_dir=job.base_dir))
-
-
-def validation_seed(job: Job) -> int:
-    """Sampler seed of validation renders: never the synth seed, so that a
-    validation at the target's spp does not reproduce the target's noise."""
-    return job.synth.seed + 1
-
-
-def _validate(job: Job, params, target, saturated, spp: int, log: _Log):
-    """Mitsuba re-render of ``params`` and its comparison with ``target``."""
-    from . import metrics, mitsuba
-
-    full = job.material.full_params(params)
-    seed = validation_seed(job)
-    with log.stage(f"validating with Mitsuba ({spp} spp)"):
-        img = np.asarray(mitsuba.render(job.scene, job.material, full, spp=spp, seed=seed,
-                                        base_dir=job.base_dir), dtype=np.float64)
-        mask = ~saturated if saturated.any() else None
-        cmp = metrics.compare(target, img, mask=mask)
-    return img, {"renderer": "mitsuba", "spp": spp, "seed": seed, **_plain(cmp)}
-
-
-def _print_summary(log: _Log, result: dict, out: str) -> None:
+def _print_summary(outcome, out: str) -> None:
+    from rich.console import Console
     from rich.table import Table
 
-    ok = result["status"] == "converged"
-    table = Table(title=f"[{'green' if ok else 'red'}]{result['status']}[/] "
-                        f"after {result['iterations']} steps -- {result.get('message', '')}")
+    from .report import fmt
+
+    res = outcome.fit
+    table = Table(title=f"[{'green' if res.converged else 'red'}]{res.status}[/] "
+                        f"after {res.iterations} steps -- {res.message}")
     table.add_column("parameter", no_wrap=True)
     table.add_column("fit")
     table.add_column("± stderr")
-    has_truth = "truth_error" in result
-    if has_truth:
+    if outcome.truth_error:
         table.add_column("truth")
         table.add_column("|error|")
-    for key, value in result["params"].items():
-        row = [key, _fmt(value), _fmt(result["stderr"].get(key), ".2g")]
-        if key in result.get("unidentifiable", []):
-            row[2] = "unidentifiable"
-        if has_truth:
-            te = result["truth_error"].get(key)
-            row += [_fmt(te["truth"]), _fmt(te["abs"], ".2g")] if te else ["", ""]
+    for key, value in res.params.items():
+        if key in res.unidentifiable:
+            err = "unidentifiable"
+        elif key in res.stderr:
+            err = fmt(res.stderr[key], ".2g")
+        else:
+            err = "fixed"
+        row = [key, fmt(value), err]
+        if outcome.truth_error:
+            te = outcome.truth_error.get(key)
+            row += [fmt(te.truth), fmt(te.abs, ".2g")] if te else ["", ""]
         table.add_row(*row)
-    from rich.console import Console
-
     console = Console(highlight=False, width=max(Console().width, 110))
     console.print(table)
-    line = f"image RMSE {result['image_rmse']:.4g}"
-    if "validation" in result:
-        v = result["validation"]
-        line += (f"; Mitsuba PSNR {v['psnr_db']:.1f} dB, ΔE2000 mean {v['delta_e2000_mean']:.3g}"
-                 f" max {v['delta_e2000_max']:.3g}")
-    console.print(line + f"; time {result['time_s']['total']:.2f} s")
-    for w in result.get("warnings", []):
+    line = f"image RMSE {fmt(res.rmse, '.4g')}"
+    v = outcome.validation
+    if v is not None:
+        line += (f"; Mitsuba PSNR {v.psnr_db:.1f} dB, ΔE2000 mean {v.delta_e2000_mean:.3g}"
+                 f" max {v.delta_e2000_max:.3g}")
+    console.print(line + f"; time {res.time_compile + res.time_run:.2f} s")
+    for w in res.warnings:
         console.print(f"[yellow]warning:[/] {w}")
     console.print(f"outputs in {out}")
 
 
-def _fmt(value, spec: str = ".5g") -> str:
-    if value is None:
-        return ""
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_fmt(v, spec) for v in value) + "]"
-    return format(value, spec)
-
-
 def cmd_synth(args) -> int:
     log = _Log(args.quiet)
-    job = load_config(args.config)
+    job = _load(args.config)
     if not job.truth:
         raise UsageError(f"{job.path}: [material.truth] is missing; synth renders the "
                          "truth parameters")
@@ -501,9 +368,10 @@ def cmd_synth(args) -> int:
         out = os.path.abspath(os.path.join("out", job.name))
     if os.path.exists(out) and not os.path.isdir(out):
         raise UsageError(f"{out}: exists and is not a folder; choose another --out")
+    from . import pipeline
     from .mitsuba import synth
 
-    params = truth_params(job)
+    params = pipeline.truth_params(job)
     os.makedirs(out, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix=".synth.tmp-", dir=out)
     try:
@@ -524,36 +392,45 @@ def cmd_synth(args) -> int:
 
 
 def cmd_validate(args) -> int:
+    from . import pipeline
+
     log = _Log(args.quiet)
-    job = load_config(args.config)
+    job = _load(args.config)
     params = read_params(args.result, job)
-    target, saturated = read_target(_target_path(job, args.target), job.scene)
+    target, saturated = pipeline.read_target(_target_path(job, args.target), job.scene)
     spp = job.fit.validate_spp if args.spp is None else args.spp
     if spp < 1:
         raise UsageError(f"--spp {spp}: expected an integer >= 1")
-    img, report = _validate(job, params, target, saturated, spp, log)
-    if args.out:
+    out = _image_out(args.out) if args.out else None
+    with log.stage(f"validating with Mitsuba ({spp} spp)"):
+        v = pipeline.validate(job, params, target, saturated, spp)
+    if out:
         from .imageio import write_image
 
-        write_image(args.out, img)
+        write_image(out, v.image)
     if args.json:
-        print(json.dumps(_plain(report), indent=2, allow_nan=False))
+        print(json.dumps(v.to_dict(), indent=2, allow_nan=False))
     else:
-        print(f"Mitsuba ({spp} spp) vs target: PSNR {report['psnr_db']:.2f} dB, "
-              f"RMSE {report['rmse']:.4g}, ΔE2000 mean {report['delta_e2000_mean']:.3g} "
-              f"max {report['delta_e2000_max']:.3g}")
+        print(f"Mitsuba ({spp} spp) vs target: PSNR {v.psnr_db:.2f} dB, "
+              f"RMSE {v.rmse:.4g}, ΔE2000 mean {v.delta_e2000_mean:.3g} "
+              f"max {v.delta_e2000_max:.3g}")
     return EXIT_OK
 
 
 def cmd_render(args) -> int:
+    from . import pipeline
+
     log = _Log(args.quiet)
-    job = load_config(args.config)
-    params = read_params(args.params, job) if args.params else truth_params(job)
+    job = _load(args.config)
+    out = _image_out(args.out)
+    params = read_params(args.params, job) if args.params else pipeline.truth_params(job)
     from .imageio import write_image
 
-    img = _render_fit(job, params, log)
-    write_image(args.out, img)
-    log.print(f"wrote {os.path.abspath(args.out)}")
+    _enable_compilation_cache()
+    with log.stage("rendering"):
+        img = pipeline.render_params(job, params)
+    write_image(out, img)
+    log.print(f"wrote {out}")
     return EXIT_OK
 
 

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._modules import make_callable
 from .bsdf.base import SurfaceHit
 from .environment import EnvData, load_environment, lookup
 from .geometry import Geometry, build_geometry
@@ -198,7 +199,8 @@ def _prepare(scene: Scene, dtype, base_dir):
 
 
 @functools.lru_cache(maxsize=16)
-def _renderer(scene: Scene, material: Material, dtype, base_dir):
+def cached_renderer(scene: Scene, material: Material, dtype, base_dir):
+    """The ``Renderer`` of a scene and material, shared by every call with equal arguments."""
     return Renderer(scene, material, dtype, base_dir)
 
 
@@ -215,4 +217,7 @@ def render(params: Mapping[str, Any], scene: Scene, material: Material | None = 
         material = Material.from_params(params)
     numeric = {k: v for k, v in params.items() if k not in material.option_keys()}
     base_dir = os.path.abspath(base_dir) if base_dir else None
-    return _renderer(scene, material, jnp.dtype(dtype), base_dir).image(numeric)
+    return cached_renderer(scene, material, jnp.dtype(dtype), base_dir).image(numeric)
+
+
+make_callable(__name__, render)  # fitter.render(...) is this function (see fitter._modules)

@@ -11,9 +11,12 @@ Matplotlib runs on the Agg backend (no display needed).
 from __future__ import annotations
 
 import os
-from typing import Any, Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .pipeline import Outcome
 
 #: Percentile of the target's pixel values mapped to display white.
 WHITE_PERCENTILE = 99.5
@@ -43,44 +46,36 @@ def display(image: np.ndarray, white: float) -> np.ndarray:
     return linear_to_srgb(np.asarray(image, dtype=np.float64) / white)
 
 
-def make_report(path: str, *, target: np.ndarray, fit: np.ndarray,
-                validation: np.ndarray | None, result: Mapping[str, Any],
-                fitted: np.ndarray | None = None, title: str = "") -> None:
-    """Write the report PNG to ``path``.
+def make_report(path: str, outcome: Outcome, title: str = "") -> None:
+    """Write the report PNG of a job's ``outcome`` (``fitter.pipeline``) to ``path``.
 
-    Args:
-        target, fit: (H, W, 3) linear RGB.
-        validation: (H, W, 3) Mitsuba re-render, or None when not validated.
-        result: the result dict (``params``, ``stderr``, ``status``, ...,
-            optionally ``truth_error`` and ``validation``).
-        fitted: (H, W) bool pixels the fit used; the others are drawn grey
-            in the residual (None: show every pixel).
-        title: headline, e.g. the config name and lobes.
+    The residual panel greys out the pixels the fit did not use; ``title`` is
+    the headline, e.g. the config name and lobes.
     """
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    target = np.asarray(target, dtype=np.float64)
-    fit = np.asarray(fit, dtype=np.float64)
+    target = np.asarray(outcome.target, dtype=np.float64)
+    fit = np.asarray(outcome.rendered, dtype=np.float64)
     positive = target[target > 0]
     white = float(np.percentile(positive, WHITE_PERCENTILE)) if positive.size else 1.0
 
     fig = plt.figure(figsize=(17, 8.6), dpi=100)
     grid = fig.add_gridspec(3, 4, height_ratios=[0.45, 4.2, 2.1], hspace=0.18, wspace=0.12,
                             left=0.02, right=0.98, top=0.97, bottom=0.03)
-    _headline(fig.add_subplot(grid[0, :]), result, title)
+    _headline(fig.add_subplot(grid[0, :]), outcome, title)
 
     panels = [(target, "target"), (fit, "fit (JAX forward model)")]
     for col, (img, name) in enumerate(panels):
         ax = fig.add_subplot(grid[1, col])
         ax.imshow(display(img, white), interpolation="nearest")
         _frame(ax, name)
-    _residual(fig, fig.add_subplot(grid[1, 2]), target - fit, fitted)
+    _residual(fig, fig.add_subplot(grid[1, 2]), target - fit, outcome.fitted)
     ax = fig.add_subplot(grid[1, 3])
-    if validation is not None:
-        ax.imshow(display(validation, white), interpolation="nearest")
+    if outcome.validation is not None:
+        ax.imshow(display(outcome.validation.image, white), interpolation="nearest")
         _frame(ax, "validation (Mitsuba 3)")
     else:
         ax.text(0.5, 0.5, "not validated\n(--no-validate)", ha="center", va="center",
@@ -89,8 +84,8 @@ def make_report(path: str, *, target: np.ndarray, fit: np.ndarray,
     fig.text(0.02, 0.005, f"display: linear / {white:.3g} (target's {WHITE_PERCENTILE} "
              "percentile), sRGB", fontsize=8, color=NEUTRAL)
 
-    _param_table(fig.add_subplot(grid[2, :3]), result)
-    _facts(fig.add_subplot(grid[2, 3]), result)
+    _param_table(fig.add_subplot(grid[2, :3]), outcome)
+    _facts(fig.add_subplot(grid[2, 3]), outcome)
 
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
@@ -104,16 +99,16 @@ def _frame(ax, title: str) -> None:
     ax.set_yticks([])
 
 
-def _headline(ax, result, title: str) -> None:
+def _headline(ax, outcome: Outcome, title: str) -> None:
     ax.axis("off")
-    ok = result.get("status") == "converged"
-    verdict = "CONVERGED" if ok else f"NOT CONVERGED ({result.get('status')})"
-    x_text = _badge(ax, 0.0, verdict, GOOD if ok else BAD)
+    res = outcome.fit
+    verdict = "CONVERGED" if res.converged else f"NOT CONVERGED ({res.status})"
+    x_text = _badge(ax, 0.0, verdict, GOOD if res.converged else BAD)
     bits = [title] if title else []
-    v = result.get("validation")
-    if v:
-        de = v.get("delta_e2000_mean")
-        if de is None:
+    v = outcome.validation
+    if v is not None:
+        de = v.delta_e2000_mean
+        if not np.isfinite(de):
             label, colour = "Mitsuba: n/a", BAD
         elif de <= INVISIBLE_DE:
             label, colour = "MITSUBA: NO VISIBLE DIFFERENCE", GOOD
@@ -122,9 +117,9 @@ def _headline(ax, result, title: str) -> None:
         else:
             label, colour = "MITSUBA: VISIBLE DIFFERENCE", BAD
         x_text = _badge(ax, x_text, label, colour)
-        bits.append(f"PSNR {_num(v.get('psnr_db'), '.1f')} dB, "
-                    f"ΔE2000 mean {_num(de, '.2g')}, max {_num(v.get('delta_e2000_max'), '.2g')}")
-    bits.append(f"image RMSE {_num(result.get('image_rmse'), '.3g')}")
+        bits.append(f"PSNR {fmt(v.psnr_db, '.1f')} dB, "
+                    f"ΔE2000 mean {fmt(de, '.2g')}, max {fmt(v.delta_e2000_max, '.2g')}")
+    bits.append(f"image RMSE {fmt(res.rmse, '.3g')}")
     ax.text(x_text, 0.5, "  |  ".join(bits), fontsize=12, va="center")
 
 
@@ -157,40 +152,36 @@ def _residual(fig, ax, residual: np.ndarray, fitted) -> None:
     bar.formatter.set_powerlimits((-2, 3))
 
 
-def _param_table(ax, result) -> None:
+def _param_table(ax, outcome: Outcome) -> None:
     ax.axis("off")
-    truth = result.get("truth_error") or {}
-    stderr = result.get("stderr") or {}
-    unident = set(result.get("unidentifiable") or [])
-    converged = result.get("status") == "converged"
+    res, truth = outcome.fit, outcome.truth_error
     header = ["parameter", "fit ± stderr"] + (["truth", "|fit − truth|", "error / stderr"]
                                               if truth else [])
     rows, colours = [], []
-    for key, value in (result.get("params") or {}).items():
-        if key in unident:
+    for key, value in res.params.items():
+        if key in res.unidentifiable:
             err = "unidentifiable (see warnings)"
-        elif key in stderr:
-            err = _vec(stderr[key])
+        elif key in res.stderr:
+            err = fmt(res.stderr[key], ".4g")
         else:
             err = "fixed"
-        row = [key, f"{_vec(value)} ± {err}" if key in stderr else f"{_vec(value)} ({err})"]
+        row = [key, f"{fmt(value, '.4g')} ± {err}" if key in res.stderr
+               else f"{fmt(value, '.4g')} ({err})"]
         colour = "white"
         if truth:
             te = truth.get(key)
             if te:
-                sig = te.get("sigmas")
-                row += [_vec(te["truth"]), _vec(te["abs"]), _vec(sig) if sig is not None else ""]
-                worst = np.nanmax(np.atleast_1d(np.asarray(sig, dtype=float))) \
-                    if sig is not None and np.any(np.isfinite(np.asarray(sig, dtype=float))) \
-                    else np.nan
+                row += [fmt(te.truth, ".4g"), fmt(te.abs, ".4g"),
+                        fmt(te.sigmas, ".4g") if te.sigmas is not None else ""]
+                worst = te.worst_sigmas
                 if np.isfinite(worst):
                     # a fit that did not converge has no trustworthy stderr to excuse a bias
-                    bias = BIAS_SIGMAS if converged else NOISE_SIGMAS
+                    bias = BIAS_SIGMAS if res.converged else NOISE_SIGMAS
                     colour = ("#e8f5e9" if worst <= NOISE_SIGMAS else
                               "#fff3e0" if worst <= bias else "#ffebee")
             else:
                 row += ["", "", ""]
-        if key in unident:
+        if key in res.unidentifiable:
             colour = "#eeeeee"
         rows.append(row)
         colours.append([colour] * len(row))
@@ -208,22 +199,22 @@ def _param_table(ax, result) -> None:
                      fontsize=9, loc="left", color=NEUTRAL)
 
 
-def _facts(ax, result) -> None:
+def _facts(ax, outcome: Outcome) -> None:
     ax.axis("off")
-    t = result.get("time_s") or {}
+    res = outcome.fit
     lines = [
-        f"status: {result.get('status')}",
-        f"message: {_wrap(str(result.get('message', '')), 44)}",
-        f"solver: {result.get('solver', '?')}, {result.get('iterations')} steps",
-        f"cost: {_num(result.get('cost'), '.4g')}",
-        f"pixels: {result.get('n_pixels', '?')} fitted, {result.get('n_excluded', 0)} excluded",
-        f"time: {_num(t.get('total'), '.2f')} s (compile {_num(t.get('compile'), '.2f')} s, "
-        f"run {_num(t.get('run'), '.2f')} s)",
+        f"status: {res.status}",
+        f"message: {_wrap(res.message, 44)}",
+        f"solver: {outcome.job.fit.solver}, {res.iterations} steps",
+        f"cost: {fmt(res.cost, '.4g')}",
+        f"pixels: {res.n_pixels} fitted, {res.n_excluded} excluded",
+        f"time: {fmt(res.time_compile + res.time_run, '.2f')} s "
+        f"(compile {fmt(res.time_compile, '.2f')} s, run {fmt(res.time_run, '.2f')} s)",
     ]
-    v = result.get("validation")
-    if v:
-        lines.append(f"Mitsuba {v.get('spp', '')} spp: RMSE {_num(v.get('rmse'), '.3g')}")
-    for w in (result.get("warnings") or [])[:4]:
+    v = outcome.validation
+    if v is not None:
+        lines.append(f"Mitsuba {v.spp} spp: RMSE {fmt(v.rmse, '.3g')}")
+    for w in res.warnings[:4]:
         lines.append("warning: " + _wrap(w, 44))
     ax.text(0.0, 1.0, "\n".join(lines), va="top", ha="left", fontsize=10, family="monospace")
 
@@ -234,13 +225,11 @@ def _wrap(text: str, width: int) -> str:
     return "\n  ".join(textwrap.wrap(text, width)) or ""
 
 
-def _num(value, fmt: str) -> str:
-    return "n/a" if value is None else format(value, fmt)
-
-
-def _vec(value) -> str:
+def fmt(value, spec: str = ".5g") -> str:
+    """A number, an array or a list of numbers as text; "n/a" for None or NaN."""
     if value is None:
         return "n/a"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_vec(v) for v in value) + "]"
-    return f"{value:.4g}"
+    a = np.asarray(value, dtype=np.float64)
+    if a.ndim > 0:
+        return "[" + ", ".join(fmt(v, spec) for v in a.reshape(-1)) + "]"
+    return "n/a" if np.isnan(a) else format(float(a), spec)
