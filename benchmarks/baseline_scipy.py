@@ -6,7 +6,7 @@ the same k x k Gauss-Legendre pixel quadrature and the same "interior" pixel
 mask, fitted in the raw parameters (rho_d RGB, m, eta) with box bounds,
 ``method="trf"``, ``x_scale="jac"`` and the default 2-point finite-difference
 Jacobian. The material-independent geometry is computed once, as any user
-would. Run by ``fitter bench`` (``fitter/bench.py``); not part of the package.
+would. Run by ``benchmarks/run.py``; not part of the package.
 
 References: Walter et al. (2007) for the Smith G1 rational approximation and
 the normalised Beckmann D (as Mitsuba 3's ``roughconductor``).

@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-#: Cases: the shipped Mitsuba case (``fitter.mitsuba.cases``) and the common start.
+#: Cases: the shipped Mitsuba case (``fitter.cases``) and the common start.
 CASES = {
     "lambert": {"init": {"lambert.rho_d": [0.5, 0.5, 0.5]}},
     "oren_nayar": {"init": {"oren_nayar.rho_d": [0.3, 0.3, 0.3], "oren_nayar.sigma": 0.2}},
@@ -58,7 +58,7 @@ def repo_root() -> str:
 def load_job(case: str, res: int):
     """(job, base_dir) of a shipped case at ``res`` x ``res``."""
     from fitter.config import job_from_dict
-    from fitter.mitsuba.cases import CASES as SHIPPED
+    from fitter.cases import CASES as SHIPPED
 
     base = os.path.join(repo_root(), "data_synthetic", case)
     job = job_from_dict(SHIPPED[case], base_dir=base)

@@ -1,7 +1,9 @@
-"""``fitter bench``: error against run time, baselines, scaling, stiff cases.
+"""The benchmarks: error against run time, baselines, scaling, stiff cases.
 
-Every measurement runs in its own subprocess (``fitter bench --worker``), so
-the peak resident memory of each method is that process's own
+A script of the source checkout, not part of the package:
+``python benchmarks/run.py [--quick] [--out DIR] [--skip PART]`` (see
+README.md here). Every measurement runs in its own subprocess (this script
+again, with ``--worker``), so the peak resident memory of each method is that process's own
 (``os.wait4``'s ``ru_maxrss``) and no method warms another's caches. Targets
 are Mitsuba renders: the shipped ``data_synthetic/<case>/target.exr`` at
 128 x 128, rendered here with the case's settings at other resolutions.
@@ -61,7 +63,7 @@ FULL = {
 
 
 def worker(kind: str, spec_path: str, out_path: str) -> int:
-    sys.path.insert(0, HERE)
+    sys.path.insert(0, HERE)  # the sibling modules, also when imported as benchmarks.run
     with open(spec_path) as fh:
         spec = json.load(fh)
     if kind == "evt":
@@ -88,7 +90,7 @@ def spawn(kind: str, spec: dict, tmp: str, log, cache: str = "") -> dict:
     with open(spec_path, "w") as fh:
         json.dump(spec, fh)
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "fitter", "bench", "--worker", kind,
+    proc = subprocess.Popen([sys.executable, os.path.abspath(__file__), "--worker", kind,
                              spec_path, out_path], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True,
                             env={**os.environ, "FITTER_CACHE_DIR": cache})
@@ -122,7 +124,7 @@ def make_target(case: str, res: int, tmp: str) -> str:
         img = read_image(shipped)
     else:
         import fitter.mitsuba as fm
-        from fitter.mitsuba.cases import CASES
+        from fitter.cases import CASES
 
         spp = min(int(CASES[case]["synth"]["spp"]), 1024)
         img = fm.render(job.scene, job.material, job.truth, spp=spp, seed=0, base_dir=base)
@@ -277,7 +279,7 @@ def plot(path, evt, case, resolutions):
 
 def markdown(res: dict) -> str:
     L = []
-    L.append(f"# fitter bench{' --quick' if res['quick'] else ''}: results")
+    L.append(f"# benchmarks/run.py{' --quick' if res['quick'] else ''}: results")
     L.append("")
     L.append(f"Machine: {res['machine']}. Date: {res['date']}. Total {res['total_s']:.0f} s.")
     L.append("The CPU was shared with other jobs while this ran: absolute times are noisy; "
@@ -424,7 +426,7 @@ def speed_targets(summary, ratios) -> list[str]:
 
 
 def main(argv) -> int:
-    p = argparse.ArgumentParser(prog="fitter bench",
+    p = argparse.ArgumentParser(prog="python benchmarks/run.py",
                                 description=__doc__.split("\n\n")[0].replace("``", ""))
     p.add_argument("--quick", action="store_true", help="the small run (< 5 min on 2 cores)")
     p.add_argument("--out", default=os.path.join(HERE, "results"), help="output folder")
@@ -489,3 +491,7 @@ def main(argv) -> int:
     print(f"wrote {args.out}/results.md, results.json, samples.csv, error_vs_time.png "
           f"({results['total_s']:.0f} s)")
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

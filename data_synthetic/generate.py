@@ -1,6 +1,6 @@
 """Regenerate the synthetic Mitsuba targets: ``python data_synthetic/generate.py [case ...]``.
 
-The cases are defined in ``fitter/mitsuba/cases.py``; see README.md here.
+The cases are defined in ``fitter/cases.py``; see README.md here.
 """
 
 import os

@@ -12,32 +12,21 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import Scene
-from .errors import FitterError
-
-
-class SceneError(FitterError):
-    """A scene that cannot be rendered (message names the field)."""
-
-
-def _unit(v, what):
-    v = np.asarray(v, dtype=np.float64)
-    n = np.linalg.norm(v)
-    if not np.isfinite(n) or n == 0:
-        raise SceneError(f"{what} must be a finite non-zero vector, got {tuple(v)}")
-    return v / n
+from .scene import PIXEL_RULES, Scene, SceneError as SceneError, check_scene
 
 
 def camera_frame(scene: Scene):
-    """(forward, right, up) unit vectors of the camera, each (3,)."""
+    """(forward, right, up) unit vectors of the camera, each (3,), of a checked scene."""
     cam = scene.camera
-    fwd = _unit(np.subtract(cam.target, cam.origin), "camera.target - camera.origin")
-    up = _unit(cam.up, "camera.up")
+    fwd, up = _unit(np.subtract(cam.target, cam.origin)), _unit(cam.up)
     right = np.cross(fwd, up)
-    if np.linalg.norm(right) < 1e-9:
-        raise SceneError("camera.up is parallel to the viewing direction")
     right /= np.linalg.norm(right)
     return fwd, right, np.cross(right, fwd)
+
+
+def _unit(v):
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)
 
 
 def pixel_rule(k: int, rule: str):
@@ -53,7 +42,8 @@ def pixel_rule(k: int, rule: str):
         return 0.5 * (x + 1.0), 0.5 * w
     if rule == "midpoint":
         return (np.arange(k) + 0.5) / k, np.full(k, 1.0 / k)
-    raise SceneError(f"pixel_rule = {rule!r}; allowed: 'gauss', 'midpoint'")
+    raise SceneError(f"scene.pixel_rule: {rule!r} is not allowed; allowed values: "
+                     + ", ".join(repr(r) for r in PIXEL_RULES))
 
 
 def film_samples(scene: Scene):
@@ -64,8 +54,6 @@ def film_samples(scene: Scene):
         right, y in [-H/W, H/W] bottom to top; weight (k*k,) sums to 1.
     """
     k, w, h = scene.supersampling, scene.width, scene.height
-    if not (isinstance(k, int) and k >= 1):
-        raise SceneError(f"supersampling = {k!r} must be an integer >= 1")
     sub, wt = pixel_rule(k, scene.pixel_rule)
     cols = (np.arange(w)[:, None] + sub[None, :])  # (W, k)
     rows = (np.arange(h)[:, None] + sub[None, :])  # (H, k)
@@ -78,24 +66,19 @@ def film_samples(scene: Scene):
 
 
 def camera_rays(scene: Scene):
-    """Ray origins and unit directions, each (H, W, k*k, 3), float64."""
+    """Ray origins and unit directions, each (H, W, k*k, 3), float64; checks the scene first."""
+    check_scene(scene)
     cam = scene.camera
     fwd, right, up = camera_frame(scene)
     x, y, _ = film_samples(scene)
     origin = np.asarray(cam.origin, dtype=np.float64)
     if cam.type == "perspective":
-        if not 0.0 < cam.fov < 180.0:
-            raise SceneError(f"camera.fov = {cam.fov} must lie in (0, 180) degrees")
         t = np.tan(np.radians(cam.fov) / 2.0)
         d = fwd + (t * x)[..., None] * right + (t * y)[..., None] * up
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         o = np.broadcast_to(origin, d.shape)
-    elif cam.type == "orthographic":
-        if not cam.half_width > 0:
-            raise SceneError(f"camera.half_width = {cam.half_width} must be > 0")
+    else:
         hw = cam.half_width
         o = origin + (hw * x)[..., None] * right + (hw * y)[..., None] * up
         d = np.broadcast_to(fwd, o.shape)
-    else:
-        raise SceneError(f"camera.type = {cam.type!r}; allowed: 'perspective', 'orthographic'")
     return np.ascontiguousarray(o), np.ascontiguousarray(d)

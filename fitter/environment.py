@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._math import safe_sqrt
-from .scene import Environment
+from .scene import Environment, resolve_path
 
 
 class EnvData(NamedTuple):
@@ -35,17 +35,11 @@ def load_environment(env: Environment, base_dir: str | None = None) -> EnvData:
     if env.type == "envmap":
         from .imageio import read_image  # OpenImageIO only when an envmap is used
 
-        path = env.file if base_dir is None else _resolve(base_dir, env.file)
+        path = resolve_path(env.file, base_dir)
         img = np.asarray(read_image(path), dtype=np.float64) * env.scale
         return EnvData(jnp.asarray(img), jnp.zeros(3))
     rad = np.zeros(3) if env.type == "black" else np.asarray(env.radiance, dtype=np.float64)
     return EnvData(jnp.zeros((1, 1, 3)), jnp.asarray(rad))
-
-
-def _resolve(base_dir, path):
-    import os
-
-    return path if os.path.isabs(path) else os.path.join(base_dir, path)
 
 
 def direction_to_uv(v):

@@ -83,7 +83,11 @@ def read_image(path: str, with_saturation: bool = False):
     return (rgb, saturated) if with_saturation else rgb
 
 
-def _atomic_write(path: str, write):
+def atomic_write(path: str, write) -> None:
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it to ``path``.
+
+    Readers see the old file or the whole new one, never a partial write.
+    """
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
     suffix = os.path.splitext(path)[1]
@@ -135,4 +139,4 @@ def write_image(path: str, image: np.ndarray, attributes: dict | None = None) ->
             raise ImageError(f"{path}: cannot write image ({msg})")
         out.close()
 
-    _atomic_write(path, write)
+    atomic_write(path, write)

@@ -17,14 +17,29 @@ so that a scene maps 1:1 onto a Mitsuba scene dict (see
   ``box`` reconstruction filter), estimated with a ``supersampling`` x
   ``supersampling`` product rule over the pixel: Gauss-Legendre nodes and
   weights by default (``pixel_rule = "gauss"``), or the midpoint grid.
+
+``check_scene`` is the one scene validator: ``fitter.serialize`` calls it on
+every ``[scene]`` table (adding the file name), the renderer on every scene
+(``fitter.camera.camera_rays``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import os
 from typing import Literal, Union
 
+from . import checks
+from .errors import FitterError
+
 Vec3 = tuple[float, float, float]
+CAMERA_TYPES = ("perspective", "orthographic")
+LIGHT_TYPES = ("point", "directional")
+ENVIRONMENT_TYPES = ("black", "constant", "envmap")
+PIXEL_RULES = ("gauss", "midpoint")
+#: Widest perspective field of view, degrees: tan(fov / 2) stays finite.
+MAX_FOV = 179.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,3 +127,81 @@ class Scene:
 
     def replace(self, **changes) -> "Scene":
         return dataclasses.replace(self, **changes)
+
+
+class SceneError(FitterError):
+    """A scene that cannot be rendered; the message starts with the key (``scene.camera.up``)."""
+
+
+def resolve_path(path: str, base_dir: str | None) -> str:
+    """``path`` with ``~`` expanded, relative to ``base_dir`` (a config's folder) unless absolute."""
+    path = os.path.expanduser(path)
+    if base_dir is not None and not os.path.isabs(path):
+        path = os.path.join(base_dir, path)
+    return os.path.normpath(path)
+
+
+def check_scene(scene: Scene) -> None:
+    """Raise ``SceneError`` naming the first field that no renderer can use."""
+    _check(checks.integer, scene.width, "scene.width", lo=1)
+    _check(checks.integer, scene.height, "scene.height", lo=1)
+    _check(checks.integer, scene.supersampling, "scene.supersampling", lo=1)
+    _check(checks.choice, scene.pixel_rule, "scene.pixel_rule", PIXEL_RULES)
+    sphere = scene.sphere
+    _check(checks.vec3, sphere.center, "scene.sphere.center")
+    _check(checks.number, sphere.radius, "scene.sphere.radius", lo=0.0, lo_open=True)
+    _check_camera(scene.camera, sphere)
+    for i, light in enumerate(scene.lights):
+        _check_light(light, f"scene.lights[{i}]", sphere)
+    _check_environment(scene.environment)
+
+
+def _check(check, value, key, *args, **kwargs):
+    try:
+        return check(value, *args, **kwargs)
+    except checks.Problem as exc:
+        raise SceneError(f"{key}: {exc}") from None
+
+
+def _check_camera(cam: Camera, sphere: Sphere) -> None:
+    kind = _check(checks.choice, cam.type, "scene.camera.type", CAMERA_TYPES)
+    origin = _check(checks.vec3, cam.origin, "scene.camera.origin")
+    target = _check(checks.vec3, cam.target, "scene.camera.target")
+    up = _check(checks.vec3, cam.up, "scene.camera.up", nonzero=True)
+    view = [t - o for t, o in zip(target, origin)]
+    if not any(view):
+        raise SceneError("scene.camera.target: must differ from scene.camera.origin")
+    cross = (view[1] * up[2] - view[2] * up[1], view[2] * up[0] - view[0] * up[2],
+             view[0] * up[1] - view[1] * up[0])
+    if math.hypot(*cross) <= 1e-9 * math.hypot(*view) * math.hypot(*up):
+        raise SceneError("scene.camera.up: is parallel to the viewing direction (target - origin)")
+    if math.dist(origin, sphere.center) <= sphere.radius:
+        raise SceneError("scene.camera.origin: lies inside the sphere; place the camera outside it")
+    if kind == "perspective":
+        _check(checks.number, cam.fov, "scene.camera.fov", lo=0.0, hi=MAX_FOV, lo_open=True)
+    else:
+        _check(checks.number, cam.half_width, "scene.camera.half_width", lo=0.0, lo_open=True)
+
+
+def _check_light(light, where: str, sphere: Sphere) -> None:
+    if isinstance(light, PointLight):
+        pos = _check(checks.vec3, light.position, f"{where}.position")
+        if math.dist(pos, sphere.center) <= sphere.radius:
+            raise SceneError(f"{where}.position: lies inside the sphere")
+        _check(checks.vec3, light.intensity, f"{where}.intensity", nonneg=True)
+    elif isinstance(light, DirectionalLight):
+        _check(checks.vec3, light.direction, f"{where}.direction", nonzero=True)
+        _check(checks.vec3, light.irradiance, f"{where}.irradiance", nonneg=True)
+    else:
+        raise SceneError(f"{where}: expected a PointLight or DirectionalLight, got "
+                         f"{checks.show(light)}")
+
+
+def _check_environment(env: Environment) -> None:
+    where = "scene.environment"
+    kind = _check(checks.choice, env.type, f"{where}.type", ENVIRONMENT_TYPES)
+    if kind == "constant":
+        _check(checks.vec3, env.radiance, f"{where}.radiance", nonneg=True)
+    elif kind == "envmap":
+        _check(checks.string, env.file, f"{where}.file")
+        _check(checks.number, env.scale, f"{where}.scale", lo=0.0)

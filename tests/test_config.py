@@ -259,7 +259,7 @@ ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir)
 
 
 def _case_names():
-    from fitter.mitsuba.cases import CASES
+    from fitter.cases import CASES
 
     return sorted(CASES)
 
@@ -271,7 +271,7 @@ def test_case_config_matches_the_case_table_and_its_case_json(name):
 
     import numpy as np
 
-    from fitter.mitsuba.cases import CASES
+    from fitter.cases import CASES
 
     job = load_config(os.path.join(ROOT, "configs", f"{name}.toml"))
     case_dir = os.path.join(ROOT, "data_synthetic", name)

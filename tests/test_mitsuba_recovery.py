@@ -20,7 +20,7 @@ import pytest
 import fitter
 from fitter import config
 from fitter.imageio import read_image
-from fitter.mitsuba.cases import CASES
+from fitter.cases import CASES
 
 pytestmark = pytest.mark.mitsuba
 

@@ -15,7 +15,7 @@ from fitter import config
 from fitter.imageio import read_image
 from fitter.metrics import compare
 from fitter.mitsuba import _variant
-from fitter.mitsuba.cases import CASES, NOTES
+from fitter.cases import CASES, NOTES
 from fitter.mitsuba.synth import make_envmap, write_case
 from fitter.mitsuba.translate import medium_dict, stratified_spp
 

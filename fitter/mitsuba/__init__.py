@@ -2,8 +2,8 @@
 
 ``render(scene, material, params)`` renders the project's scene with Mitsuba
 (see ``translate`` for the mapping, ``plugins`` for the lobes Mitsuba lacks);
-``synth.write_case`` writes a synthetic target; ``cases`` lists the shipped
-ones. Mitsuba and drjit are imported on the first call, never by
+``synth.write_case`` writes a synthetic target; ``fitter.cases`` lists the
+shipped ones. Mitsuba and drjit are imported on the first call, never by
 ``import fitter``.
 
 Variant: the ``variant`` argument, else ``$FITTER_MITSUBA_VARIANT``, else

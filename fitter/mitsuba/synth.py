@@ -3,7 +3,7 @@
 ``write_case`` writes ``target.exr`` (float32 linear RGB), ``preview.png``
 (sRGB) and ``case.json`` (scene, material, truth, Mitsuba settings), each
 atomically; the same Mitsuba version, variant, spp and seed give the same
-bytes. ``generate_all(root)`` renders every case of ``fitter.mitsuba.cases``.
+bytes. ``generate_all(root)`` renders every case of ``fitter.cases``.
 """
 
 from __future__ import annotations
@@ -14,23 +14,14 @@ import time
 
 import numpy as np
 
-from ..imageio import _atomic_write, write_image
+from .. import serialize
+from ..imageio import atomic_write, write_image
 from ..material import Material
-from ..scene import Scene
+from ..scene import Scene, resolve_path
 
 
 #: A fixed file time stamp: OpenImageIO otherwise writes the current time.
 _FIXED_STAMP = {"DateTime": "2000:01:01 00:00:00"}
-
-
-def _plain(v):
-    if isinstance(v, (str, bool)) or v is None:
-        return v
-    a = np.asarray(v)
-    if a.dtype.kind in "fi":
-        a = a.astype(np.float64)
-        return float(a) if a.ndim == 0 else [float(x) for x in a.reshape(-1)]
-    return v
 
 
 def make_envmap(path: str, width: int = 64, height: int = 32) -> None:
@@ -60,9 +51,7 @@ def _env_for_json(scene: Scene, out_dir: str, base_dir: str | None) -> Scene:
     env = scene.environment
     if env.type != "envmap":
         return scene
-    path = env.file
-    if base_dir is not None and not os.path.isabs(path):
-        path = os.path.join(base_dir, path)
+    path = resolve_path(env.file, base_dir)
     rel = os.path.relpath(os.path.abspath(path), os.path.abspath(out_dir))
     return scene.replace(environment=env.__class__(type="envmap", file=rel, scale=env.scale))
 
@@ -73,27 +62,26 @@ def write_case(out_dir: str, scene: Scene, material: Material, params, *, spp: i
     """Render the case with Mitsuba and write it to ``out_dir``; returns the case dict.
 
     ``case.json`` holds ``scene`` and ``material`` in the config layout
-    (``fitter.config.scene_to_dict`` / ``material_to_dict``; an envmap path
+    (``fitter.serialize.scene_to_dict`` / ``material_to_dict``; an envmap path
     relative to ``paths_relative_to``, default ``out_dir``: pass the final
     folder when writing into a staging folder first), the full true parameters (``truth``, defaults
     included), ``mitsuba`` (version, variant, spp, seed, integrator,
     sampler) and ``extra``. Render time is returned, not written, so the
     files are reproducible.
     """
-    from .. import config
     from . import render
     from ._variant import load
     from .translate import integrator_dict, stratified_spp
 
-    truth = {k: _plain(v) for k, v in material.full_params(params).items()}
+    truth = serialize.plain(material.full_params(params))
     t0 = time.perf_counter()
     img = render(scene, material, params, spp=spp, seed=seed, variant=variant, base_dir=base_dir)
     seconds = time.perf_counter() - t0
     mi, used = load(variant)
     case = {
-        "scene": config.scene_to_dict(_env_for_json(scene, paths_relative_to or out_dir,
-                                                    base_dir)),
-        "material": config.material_to_dict(material, truth=truth),
+        "scene": serialize.scene_to_dict(_env_for_json(scene, paths_relative_to or out_dir,
+                                                       base_dir)),
+        "material": serialize.material_to_dict(material, truth=truth),
         "truth": truth,
         "mitsuba": {"version": mi.__version__, "variant": used, "spp": stratified_spp(spp),
                     "seed": int(seed), "sampler": "stratified", "rfilter": "box",
@@ -109,7 +97,7 @@ def write_case(out_dir: str, scene: Scene, material: Material, params, *, spp: i
         with open(tmp, "w") as fh:
             fh.write(text)
 
-    _atomic_write(os.path.join(out_dir, "case.json"), _write)
+    atomic_write(os.path.join(out_dir, "case.json"), _write)
     case["render_time_s"] = seconds
     return case
 
@@ -119,8 +107,7 @@ def generate_all(root: str, names=None, *, variant: str | None = None, log=print
 
     Returns ``{name: render seconds}``.
     """
-    from .. import config
-    from .cases import CASES, ENVMAP, NOTES
+    from ..cases import CASES, ENVMAP, NOTES
 
     os.makedirs(root, exist_ok=True)
     make_envmap(os.path.join(root, ENVMAP))
@@ -129,11 +116,12 @@ def generate_all(root: str, names=None, *, variant: str | None = None, log=print
         spec = CASES[name]
         out_dir = os.path.join(root, name)
         os.makedirs(out_dir, exist_ok=True)
-        job = config.job_from_dict(spec, f"<case {name}>", base_dir=out_dir)
-        params = dict(job.truth)
-        case = write_case(out_dir, job.scene, job.material, params, spp=job.synth.spp,
-                          seed=job.synth.seed, variant=variant,
-                          extra={"name": name, "description": NOTES[name]})
+        label = f"<case {name}>"
+        scene = serialize.scene_from_dict(spec["scene"], label, base_dir=out_dir)
+        material, truth, _, _ = serialize.material_from_dict(spec["material"], label)
+        synth = serialize.synth_from_dict(spec["synth"], label)
+        case = write_case(out_dir, scene, material, truth, spp=synth.spp, seed=synth.seed,
+                          variant=variant, extra={"name": name, "description": NOTES[name]})
         times[name] = case["render_time_s"]
         if log:
             log(f"{name:22s} {case['render_time_s']:6.2f} s  spp {case['mitsuba']['spp']}")

@@ -1,7 +1,7 @@
 """The shipped synthetic cases (``data_synthetic/<name>/``) as plain data.
 
-Each entry of ``CASES`` is a dict in the TOML config layout of
-``fitter.config`` (``scene``, ``material`` with ``lobes``, ``truth`` and
+Each entry of ``CASES`` is a dict in the TOML config layout
+(``fitter.serialize``: ``scene``, ``material`` with ``lobes``, ``truth`` and
 ``fixed`` -- lobe options go in ``fixed`` --, ``synth``), so
 ``fitter.config.job_from_dict(CASES[name], base_dir=<case folder>)`` builds
 the job and a ``configs/<name>.toml`` can be written from it. Relative paths
@@ -9,7 +9,8 @@ the job and a ``configs/<name>.toml`` can be written from it. Relative paths
 is for. ``fitter.mitsuba.synth.generate_all(root)`` renders them all.
 
 Opaque-lobe cases use a black environment: Mitsuba's environment emitters
-would light those lobes, the project's model does not (see ``translate``).
+would light those lobes, the project's model does not (see
+``fitter.mitsuba.translate``).
 """
 
 from __future__ import annotations
