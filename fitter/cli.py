@@ -6,8 +6,10 @@ prints. Exit codes:
 
 * 0: done (for ``fit``: the fit converged);
 * 1: an unexpected internal error (with a traceback);
-* 2: bad input (config, image, parameters, command line, output folder): one
-  sentence on stderr naming the file/key/value, and no output written;
+* 2: bad input (config, image, parameters, command line, output folder, a
+  request over ``fitter.limits``) or a file operation the machine refused
+  (disk full, read-only): one sentence on stderr naming the file/key/value,
+  and no output written;
 * 3: ``fit`` ran but the fit did not converge (``status`` is ``"max_steps"``
   or ``"failed"``); all outputs are still written.
 
@@ -63,6 +65,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     except FitterError as exc:
         print(f"fitter: error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except OSError as exc:  # disk full, read-only or vanished folder: the machine, not fitter
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"fitter: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_INPUT
 
 
@@ -360,6 +366,9 @@ def cmd_synth(args) -> int:
     seed = job.synth.seed if args.seed is None else args.seed
     if spp < 1:
         raise UsageError(f"--spp {spp}: expected an integer >= 1")
+    from .limits import check_spp
+
+    check_spp(spp, "--spp" if args.spp is not None else "synth.spp", where=job.path)
     if args.out:
         out = os.path.abspath(args.out)
     elif job.fit.target:
@@ -401,6 +410,9 @@ def cmd_validate(args) -> int:
     spp = job.fit.validate_spp if args.spp is None else args.spp
     if spp < 1:
         raise UsageError(f"--spp {spp}: expected an integer >= 1")
+    from .limits import check_spp
+
+    check_spp(spp, "--spp" if args.spp is not None else "fit.validate_spp", where=job.path)
     out = _image_out(args.out) if args.out else None
     with log.stage(f"validating with Mitsuba ({spp} spp)"):
         v = pipeline.validate(job, params, target, saturated, spp)

@@ -125,6 +125,7 @@ def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *
         target_path: recorded in the result.
         stage: progress wrapper, called with a short text per step.
     """
+    preflight(job)
     times: dict[str, float] = {}
 
     @contextlib.contextmanager
@@ -149,6 +150,16 @@ def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *
     return Outcome(job=job, target_path=target_path or (job.fit.target or ""), target=target,
                    fit=result, rendered=rendered, validation=validation, truth_error=truth,
                    stage_times=times)
+
+
+def preflight(job: Job) -> None:
+    """Refuse, before any work, a job over the limits of ``fitter.limits``."""
+    from . import limits
+
+    s = job.scene
+    limits.check_fit(s.width, s.height, s.supersampling, job.fit.n_starts, where=job.path)
+    if job.fit.validate:
+        limits.check_spp(job.fit.validate_spp, "fit.validate_spp", where=job.path)
 
 
 def fit_job(job: Job, target: np.ndarray, saturated: np.ndarray) -> FitResult:

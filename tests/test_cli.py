@@ -12,12 +12,12 @@ import sys
 
 import numpy as np
 import pytest
+from small_case import SMALL, write_case
 
-import fitter
 from fitter import imageio
 from fitter.cli import main
-from fitter.outdir import MARKER
 from fitter.config import dumps_toml, job_to_dict, load_config
+from fitter.outdir import MARKER
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir)
 CONFIGS = os.path.join(ROOT, "configs")
@@ -33,42 +33,9 @@ SELF_FIT_ABS = 1e-6
 #: bounds the parameter errors (measured: 1.5e-4 in rho_d, 5e-4 in m).
 SRGB8_ABS = 2e-3
 
-SMALL = {
-    "scene": {
-        "width": 40, "height": 32, "supersampling": 2,
-        "camera": {"type": "perspective", "origin": [0.0, 0.0, 4.0], "fov": 35.0},
-        "lights": [{"type": "point", "position": [3.0, 4.0, 5.0],
-                    "intensity": [30.0, 30.0, 30.0]},
-                   {"type": "point", "position": [-4.0, 1.0, 4.0],
-                    "intensity": [10.0, 12.0, 14.0]}],
-    },
-    "material": {
-        "lobes": ["lambert", "torrance_sparrow"],
-        "truth": {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.2,
-                  "torrance_sparrow.eta": 1.5},
-        "init": {"torrance_sparrow.m": 0.3, "torrance_sparrow.eta": 1.4},
-        "fixed": {"torrance_sparrow.geometry": "smith"},
-    },
-    "fit": {"target": "target.exr", "validate": False},
-}
-
-
-def _write_case(folder, data=SMALL, target_name="target.exr"):
-    """A config in ``folder`` and its forward-model target; returns the config path."""
-    os.makedirs(folder, exist_ok=True)
-    path = os.path.join(folder, "small.toml")
-    with open(path, "w") as fh:
-        fh.write(dumps_toml(data))
-    job = load_config(path)
-    truth = job.material.full_params({**job.fixed, **job.truth})
-    img = np.asarray(fitter.render(truth, job.scene, job.material))
-    imageio.write_image(os.path.join(folder, target_name), img)
-    return path
-
-
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
-    return _write_case(str(tmp_path_factory.mktemp("small")))
+    return write_case(str(tmp_path_factory.mktemp("small")))
 
 
 def _run(capsys, *argv):
@@ -141,7 +108,7 @@ def test_8bit_srgb_target_is_decoded_and_its_clipped_pixels_are_excluded(tmp_pat
     data = json.loads(json.dumps(SMALL))
     data["scene"]["lights"][0]["intensity"] = [180.0, 180.0, 180.0]  # clips the highlight
     data["fit"]["target"] = "target.png"
-    cfg = _write_case(str(tmp_path), data, "target.png")
+    cfg = write_case(str(tmp_path), data, "target.png")
     img, saturated = imageio.read_image(str(tmp_path / "target.png"), with_saturation=True)
     assert saturated.sum() > 0
     code, stdout, err = _run(capsys, "fit", cfg, "--out", tmp_path / "res", "--json", "--quiet")

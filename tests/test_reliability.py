@@ -1,0 +1,139 @@
+"""Faults and oversize requests end in one clear line and exit 2, never a traceback or a kill."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+
+import pytest
+from small_case import SMALL, write_case
+
+from fitter import limits
+from fitter.cli import main
+from fitter.config import dumps_toml
+
+
+def _case(folder, edit):
+    data = json.loads(json.dumps(SMALL))
+    edit(data)
+    return write_case(str(folder), data)
+
+
+def _run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _set(path, value):
+    def edit(data):
+        node = data
+        for key in path[:-1]:
+            node = node[key]
+        node[path[-1]] = value
+    return edit
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    return write_case(str(tmp_path_factory.mktemp("small")))
+
+
+@pytest.mark.parametrize("key,value,words", [
+    (("fit", "n_starts"), 100000, ["fit.n_starts = 100000", "limit"]),
+    (("fit", "n_starts"), 2 ** 63 - 1, ["fit.n_starts", "limit"]),
+    (("fit", "validate_spp"), 4_000_000_000, ["fit.validate_spp", "limit"]),
+])
+def test_oversize_fit_options_are_refused_before_any_work(tmp_path, capsys, key, value, words):
+    def edit(data):
+        _set(key, value)(data)
+        if key[1] == "validate_spp":
+            data["fit"]["validate"] = True
+    path = _case(tmp_path, edit)
+    out = tmp_path / "res"
+    code, stdout, err = _run(capsys, "fit", path, "--out", out, "--quiet")
+    assert code == 2, err
+    assert err.count("\n") == 1 and "Traceback" not in err and path in err
+    for word in words:
+        assert word in err, (word, err)
+    assert not out.exists()
+    assert not [n for n in os.listdir(tmp_path) if n.startswith(".res")]
+
+
+def test_supersampling_and_memory_are_checked_with_an_estimate(tmp_path):
+    with pytest.raises(limits.ResourceError, match="scene.supersampling = 100"):
+        limits.check_fit(32, 32, 100, 1)
+    # 4096^2 x 4^2 samples: about 94 GB by the measured model, more than any CI machine.
+    need = limits.fit_bytes(4096, 4096, 4)
+    assert need > 90e9
+    have = limits.available_bytes()
+    assert have is not None and have > 0
+    if need > limits.MEMORY_SHARE * have:
+        with pytest.raises(limits.ResourceError, match=r"needs about \d+\.\d GB"):
+            limits.check_fit(4096, 4096, 4, 1, where="job.toml")
+    limits.check_fit(128, 128, 4, 8)  # the quickstart fits anywhere
+
+
+def test_synth_and_validate_spp_are_capped(small, tmp_path, capsys):
+    code, _, err = _run(capsys, "synth", small, "--spp", 4_000_000_000, "--out", tmp_path / "s")
+    assert code == 2 and "--spp = 4000000000" in err and "Traceback" not in err
+    assert not (tmp_path / "s").exists()
+
+
+def test_a_scene_with_no_light_ends_failed_with_a_summary_not_a_traceback(tmp_path, capsys):
+    # Every parameter is held (nothing lights the sphere): the run still reports.
+    def dark(data):
+        for light in data["scene"]["lights"]:
+            light["intensity"] = [0.0, 0.0, 0.0]
+    path = _case(tmp_path, dark)
+    out = tmp_path / "res"
+    code, stdout, err = _run(capsys, "fit", path, "--out", out)
+    assert code == 3, err
+    assert "Traceback" not in err
+    assert "image RMSE" in stdout and "failed" in stdout
+    result = json.loads((out / "result.json").read_text())
+    assert result["status"] == "failed"
+    assert result["image_rmse"] is not None
+
+
+def test_a_full_disk_while_writing_is_one_line_and_keeps_the_old_result(
+        small, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "res"
+    code, _, _ = _run(capsys, "fit", small, "--out", out, "--quiet")
+    assert code == 0
+    before = (out / "result.json").read_text()
+
+    def full(path, *args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), path)
+
+    import fitter.imageio
+
+    monkeypatch.setattr(fitter.imageio, "write_image", full)
+    code, stdout, err = _run(capsys, "fit", small, "--out", out, "--quiet")
+    assert code == 2
+    assert err.count("\n") == 1 and "No space left on device" in err
+    assert "Traceback" not in err
+    assert (out / "result.json").read_text() == before
+    assert sorted(os.listdir(tmp_path)) == ["res"]
+
+
+def test_render_out_onto_a_folder_names_the_folder(small, tmp_path, capsys):
+    code, _, err = _run(capsys, "render", small, "--out", tmp_path)
+    assert code == 2 and str(tmp_path) in err and "is a folder" in err
+    assert ".tmp" not in err
+
+
+def test_config_written_beside_a_result_stays_valid_toml_with_odd_paths(small, tmp_path, capsys):
+    # A target path with a newline must not break the config.toml fitter writes.
+    import shutil
+    import tomllib
+
+    odd = tmp_path / "a\nb.exr"
+    shutil.copy(os.path.join(os.path.dirname(small), "target.exr"), odd)
+    out = tmp_path / "res"
+    code, _, err = _run(capsys, "fit", small, "--target", odd, "--out", out, "--quiet")
+    assert code == 0, err
+    data = tomllib.loads((out / "config.toml").read_text())
+    assert data["fit"]["target"] == str(odd)
+    assert dumps_toml(data)  # and it round-trips
