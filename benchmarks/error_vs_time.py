@@ -90,10 +90,10 @@ class _Problem:
     """The fit problem exactly as ``fitter.fit`` sets it up (interior pixels, l2)."""
 
     def __init__(self, job, base, target, init):
-        from fitter.fit._fit import _Job
+        from fitter.fit._setup import Problem
 
-        fit_job = _Job.make(target[None], job.scene, job.material, init=init, fixed=job.fixed,
-                            base_dir=base)
+        fit_job = Problem.make(target[None], job.scene, job.material, init=init, fixed=job.fixed,
+                               base_dir=base)
         self.renderer, self.init_full = fit_job.renderer, fit_job.init_full
         self.free = [b.key for b in fit_job.blocks]
         self.spec, self.data = fit_job.spec, fit_job.data(0)

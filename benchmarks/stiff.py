@@ -144,9 +144,9 @@ def loss_gradients(scene, material, target, points, dtype) -> list[bool]:
     import jax
     import jax.numpy as jnp
 
-    from fitter.render import _renderer
+    from fitter.render import cached_renderer
 
-    r = _renderer(scene, material, jnp.dtype(dtype), None)
+    r = cached_renderer(scene, material, jnp.dtype(dtype), None)
     flat = np.asarray(target).reshape(-1, 3)[r.pixel_index]
     ok = np.isfinite(flat)
     t = jnp.asarray(np.where(ok, flat, 0.0), dtype=dtype)

@@ -59,10 +59,15 @@ def box_fraction(kind: str, x, lo: float, hi: float):
     return (x - lo) / (hi - lo)
 
 
+def logit(u):
+    """z with sigmoid(z) = u, for u in (0, 1) (NumPy): the inverse of the box fraction."""
+    u = np.asarray(u, dtype=np.float64)
+    return np.log(u) - np.log1p(-u)
+
+
 def to_unconstrained(kind: str, x, lo: float, hi: float, margin: float = EDGE):
     """Coordinate z(x) (NumPy); x is moved ``margin`` of the range inside [lo, hi]."""
-    u = np.clip(box_fraction(kind, x, lo, hi), margin, 1.0 - margin)
-    return np.log(u) - np.log1p(-u)
+    return logit(np.clip(box_fraction(kind, x, lo, hi), margin, 1.0 - margin))
 
 
 def derivative(kind: str, z, lo: float, hi: float):

@@ -26,3 +26,16 @@ def test_batch_matches_single_fits(batch):
             np.testing.assert_allclose(res.params[k], v, rtol=1e-6)
             np.testing.assert_allclose(res.params[k], single.params[k], rtol=1e-9)
     assert results[1].n_excluded == results[0].n_excluded + 1
+
+
+def test_each_result_carries_its_own_fitted_pixels_outside_the_json():
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3]}
+    targets = np.stack([np.asarray(fitter.render(truth, SCENE))] * 2)
+    targets[1, 12, 12] = np.nan
+    results = fit_batch(targets, SCENE, "lambert")
+    single = fitter.fit(targets[0], SCENE, "lambert")
+    np.testing.assert_array_equal(results[0].fitted, single.fitted)
+    assert results[0].fitted.dtype == bool and results[0].fitted.shape == (24, 24)
+    assert results[0].fitted[12, 12] and not results[1].fitted[12, 12]
+    assert results[0].fitted.sum() == results[1].fitted.sum() + 1 == single.n_pixels
+    assert "fitted" not in single.to_dict()

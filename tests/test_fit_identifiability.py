@@ -35,7 +35,7 @@ def test_dead_column_found_on_a_large_image_through_the_strided_start_check():
     """At 96^2 (> START_CHECK_STRIDE * 512 fitted pixels) the start check first
     looks at every 8th pixel; a parameter dead there is confirmed on all of them
     and held, and a live one (rho_d) is never held."""
-    from fitter.fit._fit import START_CHECK_STRIDE
+    from fitter.fit._drivers import START_CHECK_STRIDE
 
     scene = fitter.Scene(width=96, height=96, supersampling=1, lights=LIGHTS)
     truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "mirror.rho_m": 0.8}
@@ -145,7 +145,7 @@ def test_channel_at_its_bound_among_live_coordinates_is_reported_not_raised():
     """White (rho_d = 1) Lambert + Torrance-Sparrow: a rho_d channel driven to its
     bound has a zero Jacobian column next to live ones; the separability check
     must skip it (it once made the normalized SVD NaN and raise LinAlgError)."""
-    from fitter.fit._fit import SATURATED_Z, _unidentifiable_at
+    from fitter.fit._identify import SATURATED_Z, unidentifiable_at
     from fitter.fit._problem import Block, Spec
 
     material = fitter.Material.make(["lambert", "torrance_sparrow"])
@@ -157,9 +157,9 @@ def test_channel_at_its_bound_among_live_coordinates_is_reported_not_raised():
     s2 = 1e-6  # residual variance of residuals ~ 1e-3
     # As autodiff gives it: the slope in rho times the sigmoid's slope at z = 32.
     J[:, 0] *= 1.0 / (np.exp(z[0]) + 2.0 + np.exp(-z[0]))
-    assert _unidentifiable_at(spec, z, J, s2) is None
+    assert unidentifiable_at(spec, z, J, s2) is None
     J[:, 0] = 0.0  # no slope left even in rho: nothing says it is at the bound
-    keys, _ = _unidentifiable_at(spec, z, J, s2)
+    keys, _ = unidentifiable_at(spec, z, J, s2)
     assert keys == ["lambert.rho_d"]
 
 
@@ -170,7 +170,7 @@ def test_stderr_is_the_mapped_interval_not_the_delta_method_near_a_bound():
     gave. With sd(z) = 1e-4 both agree (closed forms of the logistic)."""
     from scipy.special import expit
 
-    from fitter.fit._fit import _covariance
+    from fitter.fit._covariance import covariance
     from fitter.fit._problem import Block, Spec
 
     spec = Spec(fitter.Material.make(["lambert"]), "black",
@@ -178,7 +178,7 @@ def test_stderr_is_the_mapped_interval_not_the_delta_method_near_a_bound():
     z = np.array([-5.0, -5.0, 0.0])
     for sd_z in (5.0, 1e-4):
         J = np.eye(3) / sd_z  # J^T J = I / sd^2 with s2 = 1
-        _, stderr, span = _covariance(spec, z, J, 1.0)
+        _, stderr, span = covariance(spec, z, J, 1.0)
         expect = 0.5 * (expit(z + sd_z) - expit(z - sd_z))
         np.testing.assert_allclose(stderr, expect, rtol=1e-9)
         np.testing.assert_allclose(span, 2 * expect, rtol=1e-9)
@@ -193,7 +193,7 @@ def test_ambiguity_check_flags_only_what_a_quadratic_cost_cannot_explain():
     2 sqrt(q) sigma is not, and only its parameter is flagged."""
     from scipy.stats import chi2
 
-    from fitter.fit._fit import AMBIGUOUS_LEVEL, _ambiguous
+    from fitter.fit._identify import AMBIGUOUS_LEVEL, ambiguous
     from fitter.fit._problem import Block, Spec
 
     spec = Spec(fitter.Material.make(["oren_nayar"]), "black",
@@ -202,7 +202,24 @@ def test_ambiguity_check_flags_only_what_a_quadratic_cost_cannot_explain():
     sigma, q = 0.01, chi2.ppf(AMBIGUOUS_LEVEL, 2)
     z, J = np.zeros(2), np.eye(2) / sigma
     edge = (np.array([0.98 * np.sqrt(q) * sigma, 0.0]), 0.5 * 0.98**2 * q)
-    assert _ambiguous(spec, z, J, 1.0, 0.0, [edge]) is None
+    assert ambiguous(spec, z, J, 1.0, 0.0, [edge]) is None
     far = (np.array([0.0, 2.0 * np.sqrt(q) * sigma]), 0.1)
-    keys, reasons = _ambiguous(spec, z, J, 1.0, 0.0, [edge, far])
+    keys, reasons = ambiguous(spec, z, J, 1.0, 0.0, [edge, far])
     assert keys == ["oren_nayar.rho_d"] and "another start" in reasons[0]
+
+
+def test_all_lights_off_returns_a_complete_failed_result():
+    """Every light at intensity 0: no parameter changes the image, all are held.
+    The result is still complete: the held values, a finite cost and image RMSE
+    (target - render over the fitted pixels, here the target itself), the
+    fitted-pixel mask, and a message that says why it failed."""
+    scene = SCENE.replace(lights=(fitter.PointLight((3.0, 4.0, 5.0), (0.0, 0.0, 0.0)),))
+    target = np.full((32, 32, 3), 0.1)
+    r = fitter.fit(target, scene, "lambert+phong")
+    assert r.status == "failed" and "no parameter is identifiable" in r.message
+    assert set(r.unidentifiable) == {"lambert.rho_d", "phong.rho_s", "phong.e"}
+    assert r.free == [] and r.stderr == {}
+    np.testing.assert_allclose(r.image_rmse, 0.1, rtol=1e-12)  # the render is black
+    assert np.isfinite(r.cost) and np.isfinite(r.to_dict()["image_rmse"])
+    assert r.fitted.shape == (32, 32) and r.fitted.sum() == r.n_pixels
+    assert all(np.all(np.isfinite(v)) for v in r.params.values())

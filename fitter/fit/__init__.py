@@ -4,8 +4,8 @@
 callable as ``fitter.fit(...)`` too, through the package's re-export.
 """
 
-from ._fit import FitError as FitError, fit as fit, fit_batch as fit_batch
-from ._fit import select_pixels as select_pixels
+from ._drivers import fit as fit, fit_batch as fit_batch
+from ._setup import FitError as FitError, select_pixels as select_pixels
 from ._problem import LOSSES as LOSSES
 from ._solvers import SOLVERS as SOLVERS
 from .result import FitResult as FitResult

@@ -11,6 +11,7 @@ import dataclasses
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 
 from .. import transforms
 from ..environment import EnvData
@@ -18,7 +19,8 @@ from ..geometry import Geometry
 from ..material import Material
 from ..render import render_active
 
-LOSSES = ("l2", "huber", "cauchy")
+#: A fitted value within this fraction of its range from a box edge is "at bound".
+AT_BOUND = 1e-4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,12 +78,61 @@ def params_from_z(spec: Spec, z, fixed: dict) -> dict:
 def z_from_params(spec: Spec, params: dict, margin: float = transforms.EDGE):
     """Coordinates (n,) of user values; values nearer than ``margin`` (fraction of
     the range) to a box edge are moved inside."""
-    import numpy as np
-
     return np.concatenate([
         np.atleast_1d(transforms.to_unconstrained(b.transform, params[b.key], b.lower, b.upper,
                                                   margin))
         for b in spec.blocks]) if spec.blocks else np.zeros(0)
+
+
+def _huber_factor(u2):
+    """2 rho(u) / u^2 of Huber: rho = u^2/2 for |u| <= 1, |u| - 1/2 beyond."""
+    au = jnp.sqrt(u2)
+    return jnp.where(au <= 1.0, 1.0, (2.0 * au - 1.0) / u2)
+
+
+def _cauchy_factor(u2):
+    """2 rho(u) / u^2 of Cauchy: rho = log(1 + u^2) / 2."""
+    return jnp.log1p(u2) / u2
+
+
+#: Robust losses by name: 2 rho(u) / u^2 of the scaled residual u = r / c.
+_ROBUST_FACTORS = {"huber": _huber_factor, "cauchy": _cauchy_factor}
+
+#: Names accepted by ``fitter.fit(loss=...)``.
+LOSSES = ("l2", *_ROBUST_FACTORS)
+
+
+def user_values(spec: Spec, z, fixed: dict) -> dict:
+    """User values (NumPy float64) of coordinates ``z`` plus the ``fixed`` values."""
+    p = params_from_z(spec, np.asarray(z, dtype=np.float64),
+                      {k: np.asarray(v, dtype=np.float64) for k, v in fixed.items()})
+    return {k: np.asarray(v) for k, v in p.items()}
+
+
+def format_value(v) -> str:
+    """A scalar or (3,) user value for messages, 6 significant digits."""
+    a = np.asarray(v)
+    return f"{float(a):.6g}" if a.ndim == 0 else "[" + ", ".join(f"{x:.6g}" for x in a) + "]"
+
+
+def frame(spec: Spec, z):
+    """Per coordinate at ``z``, float64 (n,) each: the user value x, dx/dz, the
+    natural scale (``transforms.natural_scale``) and whether x is at a bound
+    (within ``AT_BOUND`` of its box's edge, in log for a log box)."""
+    z = np.asarray(z, dtype=np.float64)
+    parts = []
+    for b, sl in spec.slices():
+        x = transforms.to_user(b.transform, z[sl], b.lower, b.upper)
+        u = transforms.box_fraction(b.transform, x, b.lower, b.upper)
+        parts.append((x, transforms.derivative(b.transform, z[sl], b.lower, b.upper),
+                      transforms.natural_scale(b.transform, x, b.lower, b.upper),
+                      (u < AT_BOUND) | (u > 1.0 - AT_BOUND)))
+    return tuple(np.concatenate([np.atleast_1d(p[i]) for p in parts]) for i in range(4))
+
+
+def blocks_of(spec: Spec, flags: np.ndarray) -> list[str]:
+    """Keys of the blocks with any of their coordinates flagged in ``flags`` (n,)."""
+    return [b.key for b, sl in spec.slices() if np.any(flags[sl])]
 
 
 def robust(r, loss: str, scale: float):
@@ -94,17 +145,12 @@ def robust(r, loss: str, scale: float):
     """
     if loss == "l2":
         return r
+    if loss not in _ROBUST_FACTORS:
+        raise ValueError(f"unknown loss {loss!r}; known: {LOSSES}")
     u = r / scale
     u2 = u * u
     small = u2 < 1e-12
-    safe_u2 = jnp.where(small, 1.0, u2)
-    if loss == "huber":
-        au = jnp.sqrt(safe_u2)
-        factor = jnp.where(au <= 1.0, 1.0, (2.0 * au - 1.0) / safe_u2)
-    elif loss == "cauchy":
-        factor = jnp.log1p(safe_u2) / safe_u2
-    else:
-        raise ValueError(f"unknown loss {loss!r}; known: {LOSSES}")
+    factor = _ROBUST_FACTORS[loss](jnp.where(small, 1.0, u2))
     return r * jnp.sqrt(jnp.where(small, 1.0, factor))
 
 

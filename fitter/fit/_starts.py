@@ -12,6 +12,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import qmc
 
+from .. import transforms
+
 #: Margin kept from the box edges by the Halton starts (fraction of the range).
 MARGIN = 0.02
 
@@ -23,4 +25,4 @@ def starts(spec, z_init: np.ndarray, n: int) -> np.ndarray:
         return z_init[None]
     u = qmc.Halton(d=z_init.size, scramble=False).random(n)[1:]  # row 0 of Halton is 0
     u = MARGIN + (1.0 - 2.0 * MARGIN) * u
-    return np.concatenate([z_init[None], np.log(u) - np.log1p(-u)], axis=0)
+    return np.concatenate([z_init[None], transforms.logit(u)], axis=0)

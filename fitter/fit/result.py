@@ -7,8 +7,6 @@ from typing import Any
 
 import numpy as np
 
-STATUSES = ("converged", "max_steps", "failed")
-
 
 @dataclasses.dataclass
 class FitResult:
@@ -21,7 +19,7 @@ class FitResult:
             parameters, same shapes: half the width of the +-1 sigma interval
             of the Gauss-Newton covariance s^2 (J^T J)^-1, mapped through the
             parameter transform and clipped to the box (the delta method when
-            small; see ``fitter.fit._fit._covariance``).
+            small; see ``fitter.fit._covariance.covariance``).
         free: names of the parameters that were fitted.
         unidentifiable: parameters the data cannot constrain; they have no
             stderr. Held at their initial value, except those only found
@@ -42,6 +40,8 @@ class FitResult:
         time_compile, time_run: seconds spent compiling and running.
         warnings: human-readable warnings (unidentifiable parameters, bounds).
         starts: one dict per start: ``{"params": ..., "cost": c, "status": s}``.
+        fitted: (H, W) bool, the pixels of this target the fit used (selected
+            and with a weight > 0); not part of ``to_dict``.
     """
 
     params: dict[str, Any]
@@ -61,10 +61,16 @@ class FitResult:
     time_run: float
     warnings: list[str] = dataclasses.field(default_factory=list)
     starts: list[dict] = dataclasses.field(default_factory=list)
+    fitted: np.ndarray | None = dataclasses.field(default=None, repr=False)
 
     @property
     def converged(self) -> bool:
         return self.status == "converged"
+
+    @property
+    def rmse(self) -> float:
+        """RMSE over the fitted pixels and the three channels."""
+        return float(np.sqrt(np.mean(np.square(self.image_rmse))))
 
     def to_dict(self) -> dict:
         """JSON-ready dict in the result contract of the CLI (README, configs/README.md)."""
@@ -78,7 +84,7 @@ class FitResult:
             "cost": float(self.cost),
             "time_s": {"compile": float(self.time_compile), "run": float(self.time_run),
                        "total": float(self.time_compile + self.time_run)},
-            "image_rmse": float(np.sqrt(np.mean(np.square(self.image_rmse)))),
+            "image_rmse": self.rmse,
             "image_rmse_rgb": _plain(self.image_rmse),
             "n_pixels": int(self.n_pixels),
             "n_excluded": int(self.n_excluded),

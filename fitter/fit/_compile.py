@@ -1,0 +1,138 @@
+"""The compiled solve: traced once per problem structure and shapes, kept in
+this process (and on disk through ``_cache``) for every later fit."""
+
+from __future__ import annotations
+
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from ._cache import compile_cached
+from ._problem import Spec, residuals
+from ._solvers import make_solver, result_code
+
+#: XLA options for the solver loops. Loop-invariant code motion hoists the
+#: parameter-independent parts of every sample (masks, G, 1/cos) out of the
+#: solver's while loop into separate, unfused passes over (lights, pixels,
+#: samples) arrays: measured +30 ms per LM fit at 256^2 with 4x4 samples
+#: (fixed cost 45 -> 15 ms), for no gain per step.
+SOLVE_XLA_OPTIONS = {"xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
+
+_COMPILED: dict = {}
+
+
+def jacobian_r(spec: Spec, z, data):
+    """(R, r) at ``z``: the Jacobian's R factor (n, n) and the residuals (N,).
+
+    J = Q R has J's column norms, singular values and Gram matrix J^T J =
+    R^T R, all that the diagnostics need, without moving the (N, n) Jacobian
+    to the host. A float32 fit (traced without x64) returns J itself; the
+    host factors it in float64 (``r_factor``).
+    """
+    J, r = jax.jacfwd(lambda z: (residuals(z, data, spec),) * 2, has_aux=True)(z)
+    if J.dtype == jnp.float64:
+        J = jnp.linalg.qr(J, mode="r")
+    return J, r
+
+
+def r_factor(J) -> np.ndarray:
+    """R factor (n, n) in float64 of a Jacobian, or R itself, from ``jacobian_r``."""
+    J = np.asarray(J, dtype=np.float64)
+    return J if J.shape[0] == J.shape[1] else np.linalg.qr(J, mode="r")
+
+
+def best_start(costs, zs, xp=np):
+    """Index of the lowest finite cost with a finite solution (0 if none)."""
+    ok = xp.isfinite(costs) & xp.all(xp.isfinite(zs), axis=1)
+    return xp.argmin(xp.where(ok, costs, xp.inf))
+
+
+def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps: int):
+    """Compiled entry: starts (S, n) -> (z, code, steps, cost) per start, the
+    best start's index, and ``jacobian_r`` there (the diagnostics)."""
+    solver = make_solver(solver_name, rtol, atol)
+
+    def fn(z, data):
+        return residuals(z, data, spec)
+
+    def one(z0, data):
+        sol = optx.least_squares(fn, solver, z0, args=data, max_steps=max_steps, throw=False)
+        info = getattr(sol.state, "f_info", None)
+        # optimistix's solver state is not public API: anything else falls back.
+        residual_jac = getattr(getattr(optx, "FunctionInfo", None), "ResidualJac", ())
+        if residual_jac and isinstance(info, residual_jac):
+            # Gauss-Newton family: the solver's last accepted linearisation is at
+            # sol.value; materialising it costs n cheap tangents, not a new Jacobian.
+            r, J = info.residual, info.jac.as_matrix()
+            jr = (jnp.linalg.qr(J, mode="r") if J.dtype == jnp.float64 else J, r)
+        else:
+            jr = jacobian_r(spec, sol.value, data)
+        r = jr[1]
+        return (sol.value, result_code(sol.result), sol.stats["num_steps"],
+                0.5 * jnp.sum(r * r), jr)
+
+    def many(z0s, data):
+        zs, codes, steps, costs, (Rs, rs) = jax.lax.map(lambda z0: one(z0, data), z0s)
+        best = best_start(costs, zs, jnp)
+        return zs, codes, steps, costs, best, (Rs[best], rs[best])
+
+    return many
+
+
+def _batch_fn(spec: Spec, batch: str, **static):
+    """One start per target: ``(z0, data with stacked targets/weights) -> stacked results``."""
+    one = _solve_fn(spec, **static)
+
+    def single(z0, target, weights, data):
+        zs, codes, steps, costs, _, jr = one(z0[None], data._replace(target=target,
+                                                                   weights=weights))
+        return zs[0], codes[0], steps[0], costs[0], jr
+
+    def run(z0, data):
+        if batch == "vmap":
+            return jax.vmap(single, in_axes=(None, 0, 0, None))(z0, data.target, data.weights, data)
+        return jax.lax.map(lambda tw: single(z0, tw[0], tw[1], data), (data.target, data.weights))
+
+    return run
+
+
+def compiled(kind: str, spec: Spec, args, **static):
+    """Compile (once per structure and shapes) and return (executable, seconds spent).
+
+    ``kind``: ``"solve"`` (multi-start solve of one target), ``"batch"`` (one
+    start per stacked target) or ``"jacres"`` (``jacobian_r``).
+    """
+    shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
+    key = (kind, spec, tuple(sorted(static.items())), str(shapes))
+    if key in _COMPILED:
+        return _COMPILED[key], 0.0
+    if kind == "solve":
+        f = _solve_fn(spec, **static)
+    elif kind == "batch":
+        f = _batch_fn(spec, **static)
+    else:  # Jacobian (as its R factor in float64) and residuals in one pass
+        f = functools.partial(jacobian_r, spec)
+    # optimistix creates some constants (e.g. LM's damping) as Python floats, which
+    # x64 would make float64: a float32 fit is traced with x64 off.
+    single = jnp.result_type(args[0]) == jnp.float32
+    t0 = time.perf_counter()
+    with jax.enable_x64(not single):
+        exe = compile_cached(f, args, repr(key), SOLVE_XLA_OPTIONS if kind != "jacres" else None)
+    _COMPILED[key] = exe
+    return exe, time.perf_counter() - t0
+
+
+def jac_res(spec: Spec, z, data):
+    """(R (n, n), residuals (N,), compile seconds) at ``z``, as float64 NumPy.
+
+    R is the Jacobian's R factor (``jacobian_r``); diagnostics and
+    covariances are computed in float64, whatever the fit's dtype.
+    """
+    z = jnp.asarray(z, dtype=data.target.dtype)
+    exe, tc = compiled("jacres", spec, (z, data))
+    R, r = exe(z, data)
+    return r_factor(R), np.asarray(r, dtype=np.float64), tc

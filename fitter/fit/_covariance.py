@@ -1,0 +1,71 @@
+"""Covariance of a fit: s^2 (J^T J)^-1 in the fit's coordinates, and the
+standard errors it gives each parameter."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import transforms
+from ._problem import Data, Spec, frame
+
+
+def degrees_of_freedom(data: Data, spec: Spec) -> int:
+    """Observations less free coordinates (at least 1); values with weight 0
+    are not observations."""
+    return max(int(np.count_nonzero(np.asarray(data.weights))) - spec.n, 1)
+
+
+def residual_variance(noise_sigma: float | None, data: Data, r, spec: Spec) -> float:
+    """s^2 of the covariance s^2 (J^T J)^-1: 1 when the residuals were divided
+    by a known noise sigma, else chi^2 per degree of freedom."""
+    if noise_sigma is not None:
+        return 1.0
+    return float(r @ r) / degrees_of_freedom(data, spec)
+
+
+def fit_coordinates(spec: Spec, z, za) -> np.ndarray:
+    """``za - z`` in the coordinates of ``covariance`` at ``z``: z, or
+    x / natural_scale for a value at its bound."""
+    x, _, scale, edge = frame(spec, z)
+    d = np.asarray(za, dtype=np.float64) - np.asarray(z, dtype=np.float64)
+    return np.where(edge, (frame(spec, za)[0] - x) / scale, d)
+
+
+def covariance(spec: Spec, z, J, s2: float):
+    """Covariance of the fitted coordinates and the +-1 sigma interval of each parameter.
+
+    Returns (cov (n, n), stderr (n,), span (n,)). Interior coordinates are z;
+    a value at its bound (``AT_BOUND``) uses u = x / natural_scale instead (J
+    column divided by dx/dz, times the scale), as dx/dz -> 0 there would make
+    its error vanish, a confidence the image never gave. A column with no
+    slope at all gets an infinite variance, not pinv's 0.
+
+    ``stderr`` is half the width of the coordinate's +-1 sigma interval mapped
+    to the parameter and clipped to its box: the delta method when that
+    interval is small, and honest when it reaches a box edge (z = -5 +- 5 is
+    rho in [4e-5, 0.5], not 0.0067 +- 0.033). ``span`` is the interval's width
+    as a fraction of the box (for log boxes, in log). ``J`` may be the
+    Jacobian's R factor (same J^T J).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    x, dxdz, scale, edge = frame(spec, z)
+    J = np.array(J, dtype=np.float64)
+    J[:, edge] *= (scale / np.where(dxdz > 0, dxdz, np.inf))[edge]
+    cov = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
+    blind = np.linalg.norm(J, axis=0) == 0
+    cov[blind, :] = cov[:, blind] = 0.0
+    cov[blind, blind] = np.inf
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    finite = np.isfinite(sd)
+    d = np.where(finite, sd, 1e300)
+    lo, hi = np.empty(spec.n), np.empty(spec.n)
+    for b, sl in spec.slices():
+        lo[sl] = transforms.to_user(b.transform, z[sl] - d[sl], b.lower, b.upper)
+        hi[sl] = transforms.to_user(b.transform, z[sl] + d[sl], b.lower, b.upper)
+        lo[sl] = np.where(edge[sl], np.clip(x[sl] - d[sl] * scale[sl], b.lower, b.upper), lo[sl])
+        hi[sl] = np.where(edge[sl], np.clip(x[sl] + d[sl] * scale[sl], b.lower, b.upper), hi[sl])
+    span = np.concatenate([np.atleast_1d(
+        transforms.box_fraction(b.transform, hi[sl], b.lower, b.upper)
+        - transforms.box_fraction(b.transform, lo[sl], b.lower, b.upper))
+        for b, sl in spec.slices()])
+    return cov, np.where(finite, 0.5 * (hi - lo), np.inf), np.where(finite, span, 1.0)

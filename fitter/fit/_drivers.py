@@ -1,0 +1,246 @@
+"""The public drivers, target image(s) -> FitResult.
+
+Flow: set up the problem -> hold parameters without effect at the start ->
+solve from one or more starts (one compiled call) -> keep the lowest cost ->
+check identifiability at the solution, hold and refit -> verdict.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..scene import Scene
+from ._compile import compiled, jac_res, r_factor
+from ._covariance import residual_variance
+from ._identify import ambiguous, dead_columns, unidentifiable_at
+from ._problem import blocks_of, format_value, user_values, z_from_params
+from ._setup import START_MARGIN, FitError, Problem
+from ._starts import starts as make_starts
+from ._verdict import all_held, report, start_status
+from .result import FitResult
+
+#: Rounds of hold-and-refit after a fit (``_finish``).
+MAX_REFITS = 2
+#: The zero-column check at the start first looks at every 8th fitted pixel.
+START_CHECK_STRIDE = 8
+
+
+def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None,
+        fixed: Mapping[str, Any] | None = None, bounds: Mapping[str, tuple] | None = None,
+        solver: str = "levenberg_marquardt", mask="interior", exclude=None, weights=None,
+        noise_sigma: float | None = None, loss: str = "l2", loss_scale: float | None = None,
+        saturation: float | None = None, n_starts: int = 1, max_steps: int | None = None,
+        rtol: float = 1e-6, atol: float = 1e-8, dtype=jnp.float64,
+        base_dir: str | None = None, identifiability: bool = True) -> FitResult:
+    """Fit the material's parameters to a target image.
+
+    Args:
+        target: (H, W, 3) linear RGB radiance of the scene's image.
+        scene: the known camera, sphere, lights and environment.
+        material: a ``Material``, a lobe list, or a ``"lambert+phong"`` string.
+        init: initial values ``{"lobe.param": value}``; missing ones take the
+            lobe's default. A parameter that is fixed by default (e.g.
+            ``torrance_sparrow.rho_s``) is freed by giving it here.
+        fixed: values held fixed (option values such as
+            ``"torrance_sparrow.geometry": "smith"`` may also stand here).
+        bounds: narrower ``(lower, upper)`` per parameter (inside its box).
+        solver: one of ``SOLVERS``.
+        mask, exclude, saturation: pixel selection (see ``select_pixels``).
+        weights: (H, W) or (H, W, 3) per-pixel residual weights.
+        noise_sigma: known pixel noise standard deviation: residuals are
+            divided by it, standard errors use it instead of the residual
+            estimate, and chi^2 / dof > ``MAX_REDUCED_CHI2`` fails the fit.
+        loss: ``"l2"``, ``"huber"`` or ``"cauchy"`` with scale ``loss_scale``
+            (in units of the weighted residual; default 1 if noise_sigma is
+            given, else 0.01).
+        n_starts: number of starts: ``init`` plus ``n_starts - 1`` points of
+            a Halton sequence over the parameter box (``fitter.fit._starts``);
+            the lowest final cost is kept, all are reported.
+        max_steps, rtol, atol: solver budget and tolerances.
+        dtype: ``jnp.float64`` (default) or ``jnp.float32``.
+        identifiability: hold and report parameters the data cannot constrain.
+
+    Returns:
+        A ``FitResult``; failures are reported in ``status``/``message``,
+        not raised. Raises ``FitError`` / ``MaterialError`` for bad input.
+    """
+    t_start = time.perf_counter()
+    if n_starts < 1:
+        raise FitError(f"n_starts = {n_starts} must be >= 1")
+    problem = Problem.make(target[None] if np.ndim(target) == 3 else target, scene, material,
+                           init=init, fixed=fixed, bounds=bounds, solver=solver, mask=mask,
+                           exclude=exclude, weights=weights, noise_sigma=noise_sigma, loss=loss,
+                           loss_scale=loss_scale, saturation=saturation, max_steps=max_steps,
+                           rtol=rtol, atol=atol, dtype=dtype, base_dir=base_dir)
+    if problem.targets.shape[0] != 1:
+        raise FitError(f"target has shape {np.shape(target)}, expected "
+                       f"{(scene.height, scene.width, 3)}; use fit_batch for several targets")
+    t_compile = 0.0
+    if identifiability:
+        problem, t_compile = _hold_dead_columns(problem)
+        if not problem.blocks:
+            return all_held(problem, 0, t_compile, 0.0)
+    data = problem.data(0)
+    z0s = problem.cast(make_starts(problem.spec, problem.z_init(), n_starts))
+    solve, tc = compiled("solve", problem.spec, (z0s, data), **problem.static)
+    t_compile += tc
+    zs, codes, nsteps, costs, best, (R, r) = solve(z0s, data)
+    zs, codes, nsteps, costs, best = (np.asarray(a) for a in (zs, codes, nsteps, costs, best))
+    starts = [{"params": user_values(problem.spec, zs[i], data.fixed), "cost": float(costs[i]),
+               "status": start_status(int(codes[i]), zs[i], costs[i])}
+              for i in range(len(costs))]
+    return _finish(problem, 0, zs[best], int(codes[best]), int(nsteps[best]), float(costs[best]),
+                   identifiability=identifiability, t_start=t_start, t_compile=t_compile,
+                   starts=starts, jr=(r_factor(R), np.asarray(r, dtype=np.float64)),
+                   alternatives=[(zs[i], float(costs[i])) for i in range(len(costs))
+                                 if i != best])
+
+
+def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
+              identifiability: bool = True, **kwargs) -> list[FitResult]:
+    """Fit many targets of one scene and material in one compiled solve.
+
+    Args:
+        targets: (B, H, W, 3) images.
+        batch: ``"map"`` (``jax.lax.map``, default: on CPU a vmapped solver
+            loop runs every fit for as many steps as the slowest one) or
+            ``"vmap"`` (``jax.vmap``, for accelerators).
+        kwargs: as ``fit`` (except ``n_starts`` and ``exclude``); the pixel
+            selection is shared, NaN/Inf/saturated pixels of each target get
+            weight 0.
+
+    Returns:
+        One ``FitResult`` per target. A target whose solution leaves a
+        parameter unidentifiable is refitted alone by ``fit`` with that
+        parameter held, so each result is what ``fit`` would report; times
+        of the shared solve are split evenly.
+    """
+    t_start = time.perf_counter()
+    if batch not in ("map", "vmap"):
+        raise FitError(f"batch = {batch!r}: expected 'map' or 'vmap'")
+    targets = np.asarray(targets, dtype=np.float64)
+    if targets.ndim != 4:
+        raise FitError(f"targets have shape {targets.shape}, expected (B, H, W, 3)")
+    problem = Problem.make(targets, scene, material, **kwargs)
+    t_compile = 0.0
+    if identifiability:
+        problem, t_compile = _hold_dead_columns(problem)
+        if not problem.blocks:
+            return [all_held(problem, b, t_compile, 0.0) for b in range(len(targets))]
+    data = problem.data(None)
+    z0 = problem.cast(problem.z_init())
+    solve, tc = compiled("batch", problem.spec, (z0, data), batch=batch, **problem.static)
+    t_compile += tc
+    zs, codes, nsteps, costs, (R, r) = (jax.tree_util.tree_map(np.asarray, a)
+                                        for a in solve(z0, data))
+    share = (time.perf_counter() - t_start - t_compile) / len(targets)
+    results = []
+    for b in range(len(targets)):
+        res = _finish(problem, b, zs[b], int(codes[b]), int(nsteps[b]), float(costs[b]),
+                      identifiability=identifiability, t_start=time.perf_counter(),
+                      t_compile=t_compile, starts=[], refit=False,
+                      jr=(r_factor(R[b]), np.asarray(r[b], dtype=np.float64)))
+        if identifiability and res is None:  # became unidentifiable: refit alone
+            res = fit(targets[b], scene, material, identifiability=True, **kwargs)
+        else:
+            res = dataclasses.replace(res, time_run=res.time_run + share,
+                                      time_compile=t_compile / len(targets))
+        results.append(res)
+    return results
+
+
+def _hold_dead_columns(problem: Problem) -> tuple[Problem, float]:
+    """Hold parameters the fitted pixels do not depend on at the start.
+
+    Returns the problem without them and the seconds spent compiling. The
+    Jacobian does not depend on the target, so one check serves a batch.
+    """
+    z0 = problem.z_init()
+    t_compile = 0.0
+    # A column alive on a strided subset of the pixels is alive (the common
+    # case, at 1/8 of the cost); one that looks dead there is checked on all.
+    stride = START_CHECK_STRIDE if problem.rows.size >= START_CHECK_STRIDE * 512 else 1
+    while True:
+        J0, _, tc = jac_res(problem.spec, z0, problem.data(0, stride))
+        t_compile += tc
+        dead = dead_columns(problem.spec, z0, J0)
+        if stride == 1 or not dead.any():
+            break
+        stride = 1
+    dead = blocks_of(problem.spec, dead)
+    return problem.held(dead, [f"{k} does not change the fitted pixels at the start (zero "
+                               f"Jacobian column); held at {format_value(problem.init_full[k])}"
+                               for k in dead]), t_compile
+
+
+def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,
+            identifiability: bool, t_start: float, t_compile: float, starts: list,
+            refit: bool = True, jr=None, alternatives=()) -> FitResult | None:
+    """Check, refit without unidentifiable parameters, and report target ``b``.
+
+    ``jr``: (R, r) at ``z`` if the solve returned them (``jac_res``).
+    ``alternatives``: (z, cost) where the other starts ended (``ambiguous``).
+    With ``refit=False`` an unidentifiable parameter at the solution
+    returns None (the caller refits).
+    """
+    spec, data = problem.spec, problem.data(b)
+    if jr is None:
+        J, r, tc = jac_res(spec, z, data)
+        t_compile += tc
+    else:
+        J, r = jr
+    # Hold what the image does not constrain and refit the rest, from the best
+    # point and from where every other start ended (so the refit is checked
+    # for ambiguity too). A parameter that is only ambiguous (another start
+    # as good, elsewhere) is marked, not held: the others keep their errors
+    # from the whole covariance, not ones conditional on an arbitrary value.
+    marked = None
+    for round_ in range(MAX_REFITS + 1 if identifiability else 0):
+        if not np.isfinite(cost):
+            break
+        s2 = residual_variance(problem.noise_sigma, data, r, spec)
+        unid = unidentifiable_at(spec, z, J, s2)
+        amb = ambiguous(spec, z, J, s2, cost, alternatives)
+        if unid is None or round_ == MAX_REFITS:
+            # Out of rounds: what is still unidentifiable is marked, not held.
+            marked = [list(u) + list(a) for u, a in zip(unid or ([], []), amb or ([], []))]
+            break
+        if not refit:
+            return None
+        keys, reasons = unid
+        best = user_values(spec, z, data.fixed)
+        values = {}
+        for k, why in zip(*(amb or ([], []))):
+            if k not in keys:  # held with the others, at this fit's value
+                keys.append(k)
+                reasons.append(why + "; held at this fit's value")
+                values[k] = best[k]
+        points = [best] + [user_values(spec, za, data.fixed) for za, _ in alternatives]
+        problem = problem.held(keys, reasons, values)
+        if not problem.blocks:
+            return all_held(problem, b, t_compile, time.perf_counter() - t_start - t_compile)
+        spec, data = problem.spec, problem.data(b)
+        z0s = problem.cast(np.stack([z_from_params(spec, {**problem.init_full, **{
+            k: v for k, v in p.items() if k not in keys}}, START_MARGIN) for p in points]))
+        solve, tc = compiled("solve", spec, (z0s, data), **problem.static)
+        t_compile += tc
+        zs, codes, nsteps, costs, best_i, (J, r) = solve(z0s, data)
+        zs, codes, nsteps, costs = (np.asarray(x) for x in (zs, codes, nsteps, costs))
+        best_i = int(best_i)
+        z, code, cost = zs[best_i], int(codes[best_i]), float(costs[best_i])
+        iters += int(nsteps[best_i])
+        J, r = r_factor(J), np.asarray(r, dtype=np.float64)
+        alternatives = [(zs[i], float(costs[i])) for i in range(len(costs)) if i != best_i]
+    warnings, unidentifiable = list(problem.warnings), list(problem.unidentifiable)
+    if marked and marked[0]:
+        unidentifiable += list(dict.fromkeys(marked[0]))
+        warnings += marked[1]
+    return report(problem, b, spec, data, z, code, iters, cost, J, r, warnings,
+                  unidentifiable, t_start, t_compile, starts)

@@ -1,0 +1,231 @@
+"""Problem set-up: the fitted pixels, their data arrays and the free
+parameters, checked and fixed once, before any solve."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import FitterError
+from ..material import Material
+from ..render import Renderer, cached_renderer
+from ._noise import estimate_noise
+from ._problem import LOSSES, Block, Data, Spec, z_from_params
+from ._solvers import SOLVERS, default_max_steps
+
+#: Starts on a box edge (e.g. the default attenuation 1) are moved this fraction
+#: of the range inside: on the edge the coordinate is saturated and the
+#: Jacobian column vanishes.
+START_MARGIN = 1e-2
+
+
+class FitError(FitterError):
+    """A fit that cannot be set up (message says what to change)."""
+
+
+def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
+    """Rows of the renderer's active pixels to fit, and how many were dropped.
+
+    ``mask``: ``"interior"`` (pixels whose every sub-pixel sample hits the
+    sphere; default), ``"active"`` (any sample hits) or an (H, W) bool array.
+    Pixels with a NaN/Inf value, in ``exclude``, or with a channel at/above
+    ``saturation`` are dropped. Negative values are kept: zero-mean noise on a
+    dark pixel is data, and dropping it would bias the fit.
+    """
+    geo = renderer.geometry
+    h, w = renderer.scene.height, renderer.scene.width
+    flat = target.reshape(h * w, 3)[renderer.pixel_index]
+    hit = np.asarray(geo.hit)
+    if isinstance(mask, str):
+        if mask == "interior":
+            chosen = hit.all(axis=1)
+        elif mask == "active":
+            chosen = np.ones(hit.shape[0], dtype=bool)
+        else:
+            raise FitError(f"mask = {mask!r}: expected 'interior', 'active' or an (H, W) array")
+    else:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != (h, w):
+            raise FitError(f"mask has shape {m.shape}, expected {(h, w)}")
+        chosen = m.reshape(-1)[renderer.pixel_index]
+    good = np.all(np.isfinite(flat), axis=1)
+    if exclude is not None:
+        ex = np.asarray(exclude, dtype=bool)
+        if ex.shape != (h, w):
+            raise FitError(f"exclude has shape {ex.shape}, expected {(h, w)}")
+        good &= ~ex.reshape(-1)[renderer.pixel_index]
+    if saturation is not None:
+        good &= np.all(np.where(np.isfinite(flat), flat, 0) < saturation, axis=1)
+    rows = np.nonzero(chosen & good)[0]
+    return rows, int(chosen.sum() - rows.size), flat
+
+
+@functools.lru_cache(maxsize=4)
+def _fitted_geometry(renderer: Renderer, rows: bytes):
+    """The renderer's geometry of the fitted ``rows`` (int64 bytes), on the device.
+
+    Subset in NumPy (no per-op dispatch), then onto the device once: the
+    solver must not copy host arrays on every call. Cached, as repeated fits
+    of one scene (a series of images, a batch) select the same pixels.
+    """
+    idx = np.frombuffer(rows, dtype=np.int64)
+    return jax.tree_util.tree_map(jnp.asarray, renderer.geometry.subset(idx)._replace(
+        pixel_index=None, background_image=None))
+
+
+def _free_blocks(material: Material, fixed_keys, bounds) -> tuple[Block, ...]:
+    """Free parameters as solver blocks, with their (possibly narrowed) boxes."""
+    blocks = []
+    for key, spec in material.param_specs().items():
+        if key in fixed_keys:
+            continue
+        lo, hi = spec.lower, spec.upper
+        if bounds and key in bounds:
+            lo, hi = (float(v) for v in bounds[key])
+            if not (spec.lower <= lo < hi <= spec.upper):
+                raise FitError(f"bounds for {key} = {(lo, hi)} must satisfy "
+                               f"{spec.lower:g} <= lower < upper <= {spec.upper:g}")
+        blocks.append(Block(key, spec.size, spec.transform, lo, hi))
+    return tuple(blocks)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Problem:
+    """A fit set up: pixels, data arrays, free blocks; shared by fit and fit_batch.
+
+    Immutable: holding parameters (``held``) returns a new Problem.
+    """
+
+    material: Material
+    renderer: Renderer
+    geometry: Any  # the renderer's geometry restricted to ``rows``
+    rows: np.ndarray  # fitted rows of the renderer's active pixels
+    n_dropped: int  # selected pixels dropped (NaN/Inf, excluded, saturated)
+    targets: np.ndarray  # (B, P, 3) selected pixels, 0 where unusable
+    weights: np.ndarray  # (B, P, 3); 0 where unusable
+    init_full: dict  # every numeric parameter: initial, fixed or held value
+    blocks: tuple[Block, ...]  # the free parameters
+    loss: str
+    loss_scale: float
+    noise_sigma: float | None
+    dtype: Any
+    static: dict  # solver_name, rtol, atol, max_steps of the compiled solve
+    noise: np.ndarray  # (B, 3) noise level estimated from each target
+    unidentifiable: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
+
+    @classmethod
+    def make(cls, targets, scene, material, *, init=None, fixed=None, bounds=None,
+             solver="levenberg_marquardt", mask="interior", exclude=None, weights=None,
+             noise_sigma=None, loss="l2", loss_scale=None, saturation=None, max_steps=None,
+             rtol=1e-6, atol=1e-8, dtype=jnp.float64, base_dir=None) -> Problem:
+        """Check the arguments of ``fit`` and set up targets (B, H, W, 3)."""
+        material = material if isinstance(material, Material) else Material.make(material)
+        if solver not in SOLVERS:
+            raise FitError(f"unknown solver {solver!r}; known: {', '.join(SOLVERS)}")
+        if loss not in LOSSES:
+            raise FitError(f"unknown loss {loss!r}; known: {', '.join(LOSSES)}")
+        targets = np.asarray(targets, dtype=np.float64)
+        if targets.shape[1:] != (scene.height, scene.width, 3):
+            raise FitError(f"target has shape {targets.shape[1:]}, expected "
+                           f"{(scene.height, scene.width, 3)} from the scene")
+        if noise_sigma is not None and not noise_sigma > 0:
+            raise FitError(f"noise_sigma = {noise_sigma} must be > 0")
+        options = {k: v for k, v in {**(init or {}), **(fixed or {})}.items()
+                   if k in material.option_keys()}
+        if options:
+            material = Material.make(material.lobes, {**dict(material.options), **options})
+        opt_keys = material.option_keys()
+        numeric_fixed = {k: v for k, v in (fixed or {}).items() if k not in opt_keys}
+        numeric_init = {k: v for k, v in (init or {}).items() if k not in opt_keys}
+        overlap = set(numeric_fixed) & set(numeric_init)
+        if overlap:
+            raise FitError(f"{sorted(overlap)} given both as initial and as fixed values")
+        init_full = material.full_params({**numeric_init, **numeric_fixed})
+        fixed_keys = set(numeric_fixed) | {k for k, s in material.param_specs().items()
+                                           if not s.free and k not in numeric_init}
+        blocks = _free_blocks(material, fixed_keys, bounds)
+        if not blocks:
+            raise FitError("every parameter is fixed: nothing to fit")
+
+        renderer = cached_renderer(scene, material, jnp.dtype(dtype),
+                                   os.path.abspath(base_dir) if base_dir else None)
+        # Pixels are chosen on the first target; others mark their bad pixels by weight 0.
+        rows, n_dropped, _ = select_pixels(renderer, targets[0], mask, exclude, saturation)
+        if rows.size == 0:
+            raise FitError("no pixels to fit: the mask selects none, or every selected pixel "
+                           "is NaN/Inf, excluded or saturated")
+        picked = targets.reshape(len(targets), -1, 3)[:, renderer.pixel_index[rows]]
+        usable = np.all(np.isfinite(picked), axis=-1, keepdims=True)
+        if saturation is not None:
+            usable &= np.all(np.where(np.isfinite(picked), picked, 0) < saturation,
+                             axis=-1, keepdims=True)
+        w = np.ones(picked.shape)
+        if weights is not None:
+            wt = np.asarray(weights, dtype=np.float64)
+            wt = np.broadcast_to(wt[..., None] if wt.ndim == 2 else wt,
+                                 (scene.height, scene.width, 3))
+            w = w * wt.reshape(-1, 3)[renderer.pixel_index[rows]]
+        if noise_sigma is not None:
+            w = w / noise_sigma
+        w = np.where(usable, w, 0.0)
+        geometry = _fitted_geometry(renderer, rows.astype(np.int64).tobytes())
+        interior = np.zeros(scene.height * scene.width, dtype=bool)
+        interior[renderer.pixel_index[rows]] = True
+        noise = [estimate_noise(t, interior.reshape(scene.height, scene.width)) for t in targets]
+        return cls(material=material, renderer=renderer, geometry=geometry, rows=rows,
+                   n_dropped=n_dropped, targets=np.where(usable, picked, 0.0), weights=w,
+                   init_full=init_full, blocks=blocks, loss=loss,
+                   loss_scale=(loss_scale if loss_scale is not None
+                               else (1.0 if noise_sigma else 0.01)),
+                   noise_sigma=noise_sigma, dtype=dtype,
+                   static={"solver_name": solver, "rtol": rtol, "atol": atol,
+                           "max_steps": max_steps or default_max_steps(solver)},
+                   noise=np.asarray(noise))
+
+    def cast(self, a):
+        return jnp.asarray(a, dtype=self.dtype)
+
+    @property
+    def spec(self) -> Spec:
+        return Spec(self.material, self.renderer.env_type, self.blocks, self.loss,
+                    self.loss_scale)
+
+    def data(self, b: int | None, stride: int = 1) -> Data:
+        """Arrays of target ``b`` (all targets stacked if None); every
+        ``stride``-th fitted pixel only if ``stride`` > 1."""
+        free = {blk.key for blk in self.blocks}
+        fixed = {k: self.cast(v) for k, v in self.init_full.items() if k not in free}
+        sel = slice(None) if b is None else b
+        geometry = self.geometry if stride == 1 else _fitted_geometry(
+            self.renderer, self.rows[::stride].astype(np.int64).tobytes())
+        pick = lambda a: self.cast(a[sel][..., ::stride, :])  # noqa: E731
+        return Data(geometry, self.renderer.env, self.renderer.sphere,
+                    pick(self.targets), pick(self.weights), fixed)
+
+    def z_init(self):
+        return z_from_params(self.spec, self.init_full, START_MARGIN)
+
+    def fitted(self, b: int) -> np.ndarray:
+        """(H, W) bool: the pixels of target ``b`` the fit uses (a weight > 0)."""
+        scene = self.renderer.scene
+        mask = np.zeros(scene.height * scene.width, dtype=bool)
+        used = np.any(self.weights[b] > 0, axis=-1)
+        mask[np.asarray(self.renderer.pixel_index)[self.rows[used]]] = True
+        return mask.reshape(scene.height, scene.width)
+
+    def held(self, keys, reasons, values=None) -> Problem:
+        """This problem with parameters ``keys`` no longer free, ``reasons``
+        added to its warnings, and held at ``values`` where given (else at
+        their initial values)."""
+        return dataclasses.replace(
+            self, blocks=tuple(b for b in self.blocks if b.key not in keys),
+            init_full={**self.init_full, **(values or {})},
+            unidentifiable=self.unidentifiable + tuple(keys),
+            warnings=self.warnings + tuple(reasons))

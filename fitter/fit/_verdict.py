@@ -1,0 +1,134 @@
+"""The verdict on a fit and its ``FitResult``: the solver's status checked
+against goodness of fit, standard errors, image RMSE, warnings and times."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..render import render_active
+from ._covariance import covariance, degrees_of_freedom, residual_variance
+from ._problem import Data, Spec, blocks_of, format_value, frame, robust, user_values
+from ._setup import Problem
+from ._solvers import solver_outcome
+from .result import FitResult
+
+#: With a known noise sigma, chi^2 per degree of freedom above this fails the fit.
+MAX_REDUCED_CHI2 = 2.0
+#: Without a noise sigma, a residual RMSE this many times the target's own noise
+#: level (``_noise.estimate_noise``) fails the fit. Measured on the shipped
+#: Mitsuba cases: good fits 0.2-3.5, fits stopped after 2 steps 25-450.
+MAX_NOISE_RATIO = 10.0
+
+
+def start_status(code: int, z, cost) -> str:
+    """``"converged"``, ``"max_steps"`` or ``"failed"`` (a non-finite solution
+    fails whatever the solver said)."""
+    if not (np.all(np.isfinite(z)) and np.isfinite(cost)):
+        return "failed"
+    return solver_outcome(code)[0]
+
+
+def _image_rmse(model, data: Data):
+    """Per-channel RMSE (3,) of model - target over the values with a weight,
+    and which values have one ((P, 3) bool)."""
+    weights = np.asarray(data.weights, dtype=np.float64)
+    used = weights > 0
+    err = np.where(used, np.asarray(model) - np.asarray(data.target), 0.0)
+    return np.sqrt(np.sum(err**2, axis=0) / np.maximum(used.sum(axis=0), 1)), used
+
+
+def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters: int,
+           cost: float, J, r, warnings: list, unidentifiable: list, t_start: float,
+           t_compile: float, starts: list) -> FitResult:
+    """The ``FitResult`` of target ``b`` solved at ``z`` (``J``: the Jacobian's R
+    factor there, ``r`` the residuals), with its goodness-of-fit verdict."""
+    status = start_status(code, z, cost)
+    message = solver_outcome(code)[1] or "solver tolerances met"
+    warnings = list(warnings)
+    dof = degrees_of_freedom(data, spec)
+    chi2 = float(r @ r)
+    s2 = residual_variance(problem.noise_sigma, data, r, spec)
+    if problem.noise_sigma is not None and status == "converged" and chi2 / dof > MAX_REDUCED_CHI2:
+        status = "failed"
+        message = (f"poor fit: chi^2/dof = {chi2 / dof:.3g} > {MAX_REDUCED_CHI2} for the "
+                   "given noise_sigma (a local minimum or a model that cannot explain the "
+                   "image; try n_starts > 1)")
+    cov_z, sd, _ = covariance(spec, z, J, s2)
+    if not np.all(np.isfinite(cov_z)):
+        blind = np.isinf(np.diag(cov_z))
+        cov_z = np.zeros_like(cov_z)
+        status, message = "failed", (
+            "the covariance is not finite (the solution is not finite)" if not blind.any()
+            else f"{', '.join(blocks_of(spec, blind))} does not change the fitted pixels "
+                 "(fit with identifiability=True to hold it)")
+        sd = np.zeros_like(sd)
+    params = user_values(spec, z, data.fixed)
+    at_edge = frame(spec, z)[3]
+    stderr, coords = {}, []
+    for blk, sl in spec.slices():
+        if blk.key not in unidentifiable:  # marked ambiguous: no error to give
+            stderr[blk.key] = sd[sl] if blk.size == 3 else float(sd[sl][0])
+        coords += [blk.key] if blk.size == 1 else [f"{blk.key}[{i}]" for i in range(3)]
+        if np.any(at_edge[sl]):
+            warnings.append(f"{blk.key} = {format_value(params[blk.key])} is at the bound of "
+                            f"[{blk.lower:g}, {blk.upper:g}]; its standard error is half "
+                            "a +-1 sigma interval cut by that bound")
+    d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
+    corr = cov_z / np.outer(d, d)
+    weights = np.asarray(data.weights, dtype=np.float64)
+    if spec.loss == "l2":  # residuals are (model - target) * weight
+        model = np.asarray(data.target) + r.reshape(-1, 3) / np.where(weights > 0, weights, 1.0)
+    else:
+        model = np.asarray(render_active(
+            {k: problem.cast(v) for k, v in params.items()}, data.geometry, data.env,
+            data.sphere, material=spec.material, env_type=spec.env_type))
+    rmse, used = _image_rmse(model, data)
+    noise = problem.noise[0 if b is None else b]
+    level = np.sqrt(np.sum(np.where(used, np.asarray(data.target), 0.0) ** 2)
+                    / max(used.sum(), 1))
+    # A noise-free, perfectly smooth target (a mirror in a constant environment)
+    # has noise 0: agreement to 1e-6 of the signal is never called poor.
+    scale = max(float(np.sqrt(np.mean(noise**2))), 1e-6 * float(level))
+    ratio = float(np.sqrt(np.mean(rmse**2)) / scale) if scale > 0 else 0.0
+    if problem.noise_sigma is None and status == "converged" and ratio > MAX_NOISE_RATIO:
+        status = "failed"
+        message = (f"poor fit: the residual RMSE is {ratio:.3g} times the target's noise "
+                   "level (Immerkaer estimate): a local minimum or a model that cannot "
+                   "explain the image; try n_starts > 1 or other initial values")
+    total = time.perf_counter() - t_start
+    return FitResult(
+        params={k: (np.asarray(params[k]) if np.size(params[k]) > 1 else float(params[k]))
+                for k in spec.material.param_specs()}, stderr=stderr, free=[blk.key for blk in spec.blocks],
+        unidentifiable=unidentifiable, correlation=corr, coordinates=coords, status=status,
+        message=message, iterations=iters, cost=cost, image_rmse=rmse,
+        n_pixels=int(problem.rows.size),
+        n_excluded=problem.n_dropped + int(np.sum(~used.all(axis=-1))),
+        time_compile=t_compile, time_run=max(total - t_compile, 0.0),
+        warnings=warnings, starts=starts, fitted=problem.fitted(0 if b is None else b))
+
+
+def all_held(problem: Problem, b: int, t_compile: float, t_run: float) -> FitResult:
+    """The failed ``FitResult`` of target ``b`` when every parameter is held:
+    the values are the held ones, cost and image RMSE are those of their render."""
+    spec, data = problem.spec, problem.data(b)  # no free blocks: data.fixed is complete
+    model = np.asarray(render_active(data.fixed, data.geometry, data.env, data.sphere,
+                                     material=spec.material, env_type=spec.env_type),
+                       dtype=np.float64)
+    weights = np.asarray(data.weights, dtype=np.float64)
+    r = np.asarray(robust((model - np.asarray(data.target, dtype=np.float64)) * weights,
+                          spec.loss, spec.loss_scale), dtype=np.float64)
+    rmse, used = _image_rmse(model, data)
+    return FitResult(
+        params={k: (np.asarray(v) if np.size(v) > 1 else float(v))
+                for k, v in problem.init_full.items()}, stderr={},
+        free=[], unidentifiable=list(problem.unidentifiable), correlation=np.zeros((0, 0)),
+        coordinates=[], status="failed",
+        message="no parameter is identifiable from this image: every free parameter is held "
+                "(see warnings)",
+        iterations=0, cost=0.5 * float(np.sum(r * r)), image_rmse=rmse,
+        n_pixels=int(problem.rows.size),
+        n_excluded=problem.n_dropped + int(np.sum(~used.all(axis=-1))),
+        time_compile=t_compile, time_run=t_run, warnings=list(problem.warnings),
+        fitted=problem.fitted(b))
