@@ -1,4 +1,6 @@
-"""The ``fitter`` command line: fit, synth, validate, render, bench.
+"""The ``fitter`` command line: fit, synth, validate, render.
+
+Benchmarks are a script of the source checkout (``python benchmarks/run.py``).
 
 Every command reads one TOML job (``fitter.config``); ``fitter fit`` runs it
 through ``fitter.pipeline`` and this module only parses, reads, writes and
@@ -51,10 +53,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _parser()
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
-        if argv[:1] == ["bench"]:  # REMAINDER does not take a leading "--option"
-            args = argparse.Namespace(rest=argv[1:], run=cmd_bench)
-        else:
-            args = parser.parse_args(argv)
+        args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse printed usage and the reason
         return EXIT_OK if exc.code == 0 else EXIT_INPUT
     try:
@@ -169,9 +168,6 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(run=cmd_render)
 
-    b = sub.add_parser("bench", help="benchmarks (fitter.bench)", add_help=False)
-    b.add_argument("rest", nargs=argparse.REMAINDER)
-    b.set_defaults(run=cmd_bench)
     return p
 
 
@@ -444,15 +440,3 @@ def cmd_render(args) -> int:
     write_image(out, img)
     log.print(f"wrote {out}")
     return EXIT_OK
-
-
-def cmd_bench(args) -> int:
-    import importlib.util
-
-    if importlib.util.find_spec("fitter.bench") is None:
-        print("fitter: error: benchmarks are not available in this installation "
-              "(no fitter.bench module)", file=sys.stderr)
-        return EXIT_INPUT
-    from . import bench
-
-    return int(bench.main(args.rest) or 0)

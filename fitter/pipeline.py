@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, Callable, ContextManager, Mapping
 import numpy as np
 
 from .imageio import ImageError
+from .serialize import plain
 
 if TYPE_CHECKING:  # the fit engine imports JAX: only when a job runs
     from .config import Job
@@ -252,19 +253,3 @@ def read_target(path: str, scene) -> tuple[np.ndarray, np.ndarray]:
                          "radiance >= 0")
     return img, saturated
 
-
-def plain(value):
-    """JSON-ready: arrays -> lists, numpy scalars -> float, NaN/Inf -> None."""
-    if isinstance(value, Mapping):
-        return {str(k): plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return plain(value.tolist())
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    return value

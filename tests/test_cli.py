@@ -48,7 +48,7 @@ def test_python_m_fitter_help_lists_the_commands():
     proc = subprocess.run([sys.executable, "-m", "fitter", "--help"], capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    for command in ("fit", "synth", "validate", "render", "bench"):
+    for command in ("fit", "synth", "validate", "render"):
         assert command in proc.stdout
 
 
