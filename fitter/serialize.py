@@ -26,6 +26,7 @@ Layout::
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 from typing import Any, Mapping
@@ -197,11 +198,13 @@ def _camera_from_dict(r: Reader, tbl: dict) -> Camera:
                                       "scene.camera.half_width"))
 
 
+#: Each light type's class and keys (in writing order).
+_LIGHTS = {"point": (PointLight, ("position", "intensity")),
+           "directional": (DirectionalLight, ("direction", "irradiance"))}
+
+
 def _light_to_dict(lt) -> dict:
-    if lt.type == "point":
-        return {"type": "point", "position": list(lt.position), "intensity": list(lt.intensity)}
-    return {"type": "directional", "direction": list(lt.direction),
-            "irradiance": list(lt.irradiance)}
+    return {"type": lt.type, **{k: list(getattr(lt, k)) for k in _LIGHTS[lt.type][1]}}
 
 
 def _light_from_dict(r: Reader, tbl, where: str):
@@ -210,15 +213,10 @@ def _light_from_dict(r: Reader, tbl, where: str):
     if "type" not in tbl:
         raise r.error(f"{where}.type", "missing; allowed values: "
                       + ", ".join(repr(c) for c in LIGHT_TYPES))
-    if r.choice(tbl["type"], f"{where}.type", LIGHT_TYPES) == "point":
-        r.table(tbl, where, {"type", "position", "intensity"})
-        r.require(tbl, where, ("position", "intensity"))
-        return PointLight(position=r.vec3(tbl["position"], f"{where}.position"),
-                          intensity=r.vec3(tbl["intensity"], f"{where}.intensity"))
-    r.table(tbl, where, {"type", "direction", "irradiance"})
-    r.require(tbl, where, ("direction", "irradiance"))
-    return DirectionalLight(direction=r.vec3(tbl["direction"], f"{where}.direction"),
-                            irradiance=r.vec3(tbl["irradiance"], f"{where}.irradiance"))
+    cls, keys = _LIGHTS[r.choice(tbl["type"], f"{where}.type", LIGHT_TYPES)]
+    r.table(tbl, where, {"type", *keys})
+    r.require(tbl, where, keys)
+    return cls(**{k: r.vec3(tbl[k], f"{where}.{k}") for k in keys})
 
 
 def _environment_to_dict(env: Environment) -> dict:
@@ -421,7 +419,12 @@ def _is_table_array(v) -> bool:
 
 def _key(k: str) -> str:
     bare = k.replace("_", "").replace("-", "").isalnum()
-    return k if bare else '"' + k.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return k if bare else _string(k)
+
+
+def _string(s: str) -> str:
+    """A TOML basic string: JSON's escapes are TOML's, except DEL, which TOML forbids raw."""
+    return json.dumps(s, ensure_ascii=False).replace("\x7f", "\\u007f")
 
 
 def _value(v) -> str:
@@ -432,7 +435,7 @@ def _value(v) -> str:
     if isinstance(v, float):
         return repr(v)
     if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        return _string(v)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
