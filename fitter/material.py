@@ -72,8 +72,7 @@ class Material:
         return tuple(LOBES[n] for n in self.lobes)
 
     def options_of(self, lobe: str) -> dict[str, Any]:
-        prefix = lobe + "."
-        return {k[len(prefix):]: v for k, v in self.options if k.startswith(prefix)}
+        return lobe_params(dict(self.options), lobe)
 
     def param_specs(self) -> dict[str, Param]:
         """``{"lobe.param": Param}`` for every parameter of every lobe, in order."""
@@ -144,6 +143,7 @@ def _shaped(value, spec: Param) -> np.ndarray:
 
 
 def lobe_params(params: Mapping[str, Any], lobe: str) -> dict[str, Any]:
-    """The ``{"param": value}`` sub-dict of one lobe from flat ``"lobe.param"`` keys."""
+    """The ``{"param": value}`` sub-dict of one lobe from flat ``"lobe.param"`` keys
+    (options too: ``"lobe.option"``)."""
     prefix = lobe + "."
     return {k[len(prefix):]: v for k, v in params.items() if k.startswith(prefix)}

@@ -16,6 +16,8 @@ quadrature-error estimate and must itself be below ``QUAD_TOL``.
 from __future__ import annotations
 
 import functools
+import pathlib
+import re
 
 import jax
 import jax.numpy as jnp
@@ -23,7 +25,7 @@ import numpy as np
 import pytest
 
 import fitter
-from fitter.bsdf import LOBES
+from fitter.bsdf import LOBES, tables
 from fitter.bsdf.microfacet import beckmann_d_lecture
 from conftest import fresnel_reference, spherical_quadrature
 
@@ -47,35 +49,32 @@ def _p(d):
     return {k: jnp.asarray(v, dtype=jnp.float64) for k, v in d.items()}
 
 
-# (id, lobe, params at the top of their box, options); rho = 1 everywhere.
-CONSERVING = [
-    ("lambert", "lambert", {"rho_d": np.ones(3)}, {}),
-    ("oren_nayar-s0.5", "oren_nayar", {"rho_d": np.ones(3), "sigma": 0.5}, {}),
-    ("oren_nayar-s1.5", "oren_nayar", {"rho_d": np.ones(3), "sigma": 1.5}, {}),
-    *[(f"phong_norm-e{e:g}", "phong", {"rho_s": np.ones(3), "e": e}, {"normalized": True})
-      for e in (1.0, 10.0, 100.0, 1e4)],
-    *[(f"ts_{g}-m{m:g}", "torrance_sparrow", {"m": m, "eta": 4.0, "rho_s": 1.0}, {"geometry": g})
-      for g in ("v_groove", "smith") for m in (0.01, 0.2, 1.0)],
-]
-ALL_BRDFS = CONSERVING + [
-    ("phong_lecture-e1", "phong", {"rho_s": np.ones(3), "e": 1.0}, {"normalized": False}),
-    ("phong_lecture-e50", "phong", {"rho_s": np.ones(3), "e": 50.0}, {"normalized": False}),
-    ("ts_v_groove-eta1", "torrance_sparrow", {"m": 0.3, "eta": 1.0, "rho_s": 1.0},
-     {"geometry": "v_groove"}),
-]
+def property_cases(lobes=None, conserving_only=False):
+    """(id, lobe, params, options) of every BRDF lobe's ``hints.points`` (at the
+    top of their reflectance box: rho = 1), read from the registry when called."""
+    lobes = LOBES if lobes is None else lobes
+    return [(pt.id, name, dict(pt.params), dict(pt.options))
+            for name, lobe in lobes.items() if lobe.kind == "brdf"
+            for pt in lobe.hints.points if pt.conserving or not conserving_only]
+
+
+ALL_BRDFS = property_cases()
+CONSERVING = property_cases(conserving_only=True)
+RECIPROCAL = [c for c in ALL_BRDFS if LOBES[c[1]].hints.reciprocal]
 
 
 @functools.lru_cache(maxsize=None)
 def _compiled(lobe, opts_items):
+    # Keyed by the Lobe itself, not its name: a test may register a throwaway lobe.
     opts = dict(opts_items)
-    return jax.jit(lambda p, n, wi, wo: LOBES[lobe].eval(p, opts, n, wi, wo)[..., 0])
+    return jax.jit(lambda p, n, wi, wo: lobe.eval(p, opts, n, wi, wo)[..., 0])
 
 
 def _eval(lobe, params, opts, wi, wo):
     """f(wi, wo) of the red channel about n = +z; wi (3,) or (N, 3), wo (N, 3)."""
     n = jnp.broadcast_to(jnp.asarray(NORMAL), jnp.shape(wo))
     wi = jnp.broadcast_to(jnp.asarray(wi), jnp.shape(wo))
-    fn = _compiled(lobe, tuple(sorted(opts.items())))
+    fn = _compiled(LOBES[lobe], tuple(sorted(opts.items())))
     return np.asarray(fn(_p(params), n, wi, jnp.asarray(wo)))
 
 
@@ -86,28 +85,25 @@ def _wi(theta):
 def reflectance(lobe, params, opts, theta_i, n_theta, f_scale=None):
     """rho(wi, 2pi) = int f(wi, wo) cos(theta_o) dwo, by quadrature.
 
-    The nodes follow the lobe's peak: over wo about n (diffuse), over wo about
-    the mirror direction (Phong; cap where cos^e < e^-40), over the half
-    vector h with dwo = 4 (wo.h) dwh (microfacet; cap where the Beckmann
-    exponent < e^-40; the horizon cuts broad lobes, a kink the rule converges
-    on as N^-2, hence more nodes). ``f_scale`` optionally divides f (white
-    furnace).
+    The nodes follow the lobe's peak, as its ``hints.quadrature`` says: over
+    wo about n (diffuse), over wo about the mirror direction (Phong), or over
+    the half vector h with dwo = 4 (wo.h) dwh (microfacet), each within a cap
+    holding the lobe's mass. ``f_scale`` optionally divides f (white furnace).
     """
     wi = _wi(theta_i)
-    if lobe == "phong":
+    q = LOBES[lobe].hints.quadrature(params)
+    n_theta *= q.refine
+    if q.axis == "mirror":
         r = 2.0 * wi[2] * NORMAL - wi
-        cap = min(np.pi, np.sqrt(80.0 / params["e"]))
-        wo, w = spherical_quadrature(r, n_theta, 2 * n_theta, cap)
+        wo, w = spherical_quadrature(r, n_theta, 2 * n_theta, q.cap)
         jac = np.ones(len(w))
-    elif lobe == "torrance_sparrow":
-        n_theta *= 2
-        cap = min(np.pi / 2, np.arctan(params["m"] * np.sqrt(40.0)))
-        h, w = spherical_quadrature(NORMAL, n_theta, 2 * n_theta, cap)
+    elif q.axis == "half":
+        h, w = spherical_quadrature(NORMAL, n_theta, 2 * n_theta, q.cap)
         ih = h @ wi
         wo = 2.0 * ih[:, None] * h - wi
         jac = np.where(ih > 0, 4.0 * ih, 0.0)
     else:
-        wo, w = spherical_quadrature(NORMAL, n_theta, 2 * n_theta)
+        wo, w = spherical_quadrature(NORMAL, n_theta, 2 * n_theta, q.cap)
         jac = np.ones(len(w))
     f = _eval(lobe, params, opts, wi, wo)
     if f_scale is not None:
@@ -144,7 +140,7 @@ def test_positive_and_finite(case):
     assert np.all(np.isfinite(_eval(lobe, params, opts, wi, wo)))
 
 
-@pytest.mark.parametrize("case", ALL_BRDFS, ids=[c[0] for c in ALL_BRDFS])
+@pytest.mark.parametrize("case", RECIPROCAL, ids=[c[0] for c in RECIPROCAL])
 def test_helmholtz_reciprocity(case):
     _, lobe, params, opts = case
     wi, wo = _random_pairs(np.random.default_rng(2), 4000)
@@ -277,3 +273,43 @@ def test_linearity_of_lobes():
     assert both.max() > 0.1
     # Same terms, summed in another order: float64 rounding only.
     np.testing.assert_allclose(both, parts, rtol=1e-13, atol=1e-15)
+
+
+def test_every_brdf_lobe_has_property_points():
+    """A lobe without ``hints.points`` would skip the tests above silently."""
+    for name, lobe in LOBES.items():
+        if lobe.kind == "brdf":
+            assert any(pt.conserving for pt in lobe.hints.points), name
+
+
+# --- the READMEs' lobe tables are the lobes' own docs -------------------------
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def _table(path, header):
+    """The body rows of the markdown table whose header line is ``header``."""
+    lines = (ROOT / path).read_text(encoding="utf-8").splitlines()
+    i = lines.index(header) + 2  # header, separator
+    rows = []
+    while i < len(lines) and lines[i].startswith("|"):
+        rows.append(lines[i])
+        i += 1
+    return rows
+
+
+@pytest.mark.parametrize("path,header,rows", [
+    ("README.md", "| lobe | parameters (valid box) | model |", tables.lobe_rows),
+    ("configs/README.md", "| key | size | default | valid box | meaning |", tables.param_rows),
+    ("configs/README.md", "| key | values | default | meaning |", tables.option_rows),
+])
+def test_readme_tables_match_lobe_docs(path, header, rows):
+    """Rows written from ``Lobe.doc``/``Param``/``Option`` (print them with
+    ``python -m fitter.bsdf.tables``)."""
+    assert _table(path, header) == rows(LOBES.values())
+
+
+def test_configs_readme_lists_every_lobe():
+    text = (ROOT / "configs/README.md").read_text(encoding="utf-8")
+    row = next(r for r in text.splitlines() if r.startswith("| `lobes` |"))
+    assert re.findall(r"`(\w+)`", row.split("|")[4]) == list(LOBES)

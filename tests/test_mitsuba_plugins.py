@@ -2,7 +2,9 @@
 
 Reference: each lobe's JAX ``eval`` (the lecture's formula, itself checked
 against closed forms in ``test_closed_forms.py``), and Mitsuba's own
-``diffuse``/``roughconductor``/``conductor`` for the plugin-free lobes. Mitsuba
+``diffuse``/``roughconductor``/``conductor`` for the plugin-free lobes. Every
+BRDF lobe of the registry is checked at its ``hints.example`` under each of
+its option settings. Mitsuba
 runs in float32, so values agree to FLOAT32_REL relative (plus FLOAT32_ABS
 of the largest value, for cancellations such as 2 ci co - wi.wo).
 """
@@ -13,6 +15,7 @@ import numpy as np
 import pytest
 
 import fitter
+from fitter.material import lobe_params
 from fitter.mitsuba import _variant, plugins
 from fitter.mitsuba.translate import bsdf_dict
 
@@ -23,18 +26,45 @@ FLOAT32_REL = 2e-4
 FLOAT32_ABS = 1e-5
 SAMPLE_REL = 1e-4  # weight * pdf vs eval for the same sampled direction
 
+def _option_settings(lobe):
+    """Every combination of the lobe's discrete options (free-form ones at default)."""
+    settings = [{}]
+    for o in lobe.options:
+        if o.choices is not None:
+            settings = [{**s, f"{lobe.name}.{o.name}": c} for s in settings for c in o.choices]
+    return settings
+
+
+def materials(lobes=None):
+    """(lobes, options, params) per case: each BRDF lobe at its ``hints.example``
+    under every option setting, read from the registry when called."""
+    lobes = fitter.LOBES if lobes is None else lobes
+    out = {}
+    for name, lobe in lobes.items():
+        if lobe.kind != "brdf" or lobe.mitsuba is None:
+            continue
+        params = {f"{name}.{k}": v for k, v in lobe.hints.example.items()}
+        for opts in _option_settings(lobe):
+            case = "-".join([name] + [f"{k.split('.')[1]}={v}" for k, v in opts.items()])
+            out[case] = (name, opts, params)
+    return out
+
+
 MATERIALS = {
-    "lambert": ("lambert", {}, {"lambert.rho_d": [0.6, 0.4, 0.2]}),
-    "oren_nayar": ("oren_nayar", {}, {"oren_nayar.rho_d": [0.6, 0.5, 0.4], "oren_nayar.sigma": 0.7}),
-    "phong": ("phong", {}, {"phong.rho_s": [0.5, 0.4, 0.3], "phong.e": 40.0}),
-    "phong_normalized": ("phong", {"phong.normalized": True},
-                         {"phong.rho_s": [0.5, 0.4, 0.3], "phong.e": 40.0}),
-    "ts_smith": ("torrance_sparrow", {"torrance_sparrow.geometry": "smith"},
-                 {"torrance_sparrow.m": 0.3, "torrance_sparrow.eta": 1.7}),
-    "ts_v_groove": ("torrance_sparrow", {}, {"torrance_sparrow.m": 0.3,
-                                             "torrance_sparrow.eta": 1.7}),
+    **materials(),
     "sum": ("lambert+oren_nayar+phong", {}, {"phong.e": 10.0}),
 }
+
+
+def _uses_plugin(case):
+    """The case's BSDF is (or sums) a Python plugin: its sampler is ours to test."""
+    lobes, options, params = case
+    material = fitter.Material.make(lobes, options)
+    return len(material.lobes) > 1 or bsdf_dict(material, params)["type"] in \
+        material.lobe_objects[0].mitsuba.plugins
+
+
+PLUGIN_CASES = [name for name, case in MATERIALS.items() if _uses_plugin(case)]
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +94,12 @@ def _mitsuba_eval(mi, bsdf, wo_view, wi_light):
 
 @pytest.mark.parametrize("name", list(MATERIALS))
 def test_plugin_eval_matches_model(name, mi):
-    lobes, options, params = MATERIALS[name]
+    check_eval(name, MATERIALS[name], mi)
+
+
+def check_eval(name, case, mi):
+    """Mitsuba's eval of the case's BSDF dict = the lobes' summed JAX eval * cos."""
+    lobes, options, params = case
     material = fitter.Material.make(lobes, options)
     bsdf = mi.load_dict(bsdf_dict(material, params))
     rng = np.random.default_rng(7)
@@ -75,7 +110,7 @@ def test_plugin_eval_matches_model(name, mi):
     n = np.broadcast_to([0.0, 0.0, 1.0], view.shape)
     f = 0.0
     for lobe in material.lobe_objects:
-        p = {k.split(".", 1)[1]: v for k, v in full.items() if k.startswith(lobe.name + ".")}
+        p = lobe_params(full, lobe.name)
         f = f + np.asarray(lobe.eval(p, material.options_of(lobe.name), n, light, view))
     lit = (light[:, 2] > 0) & (view[:, 2] > 0)
     want = np.where(lit[:, None], f * light[:, 2:3], 0.0)
@@ -85,11 +120,16 @@ def test_plugin_eval_matches_model(name, mi):
                            f"worst {np.abs(got - want).max():.3g}")
 
 
-@pytest.mark.parametrize("name", ["oren_nayar", "phong", "ts_v_groove", "sum"])
+@pytest.mark.parametrize("name", PLUGIN_CASES)
 def test_plugin_sample_weight_is_eval_over_pdf(name, mi):
+    check_sample(MATERIALS[name], mi)
+
+
+def check_sample(case, mi):
+    """The plugin's sample weight * pdf = eval for the sampled direction."""
     import drjit as dr
 
-    lobes, options, params = MATERIALS[name]
+    lobes, options, params = case
     bsdf = mi.load_dict(bsdf_dict(fitter.Material.make(lobes, options), params))
     rng = np.random.default_rng(3)
     view = _directions(rng, N)

@@ -28,17 +28,22 @@ A lobe is one of two kinds:
   callable direction (..., 3) -> RGB radiance (..., 3)).
 
 Lobes add (the lecture's linearity of BRDFs). Adding a lobe is one module
-defining ``LOBE = Lobe(...)`` plus one entry in ``fitter.bsdf.registry``.
+defining ``LOBE = Lobe(...)`` plus one entry in ``fitter.bsdf.registry``: the
+module holds the formula, its parameters and docs, its Mitsuba mapping
+(``fitter.bsdf.mitsuba_map``) and the hints its property tests need
+(``Hints``). Nothing else names a lobe.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Literal, NamedTuple
+import math
+from typing import Any, Callable, Literal, Mapping, NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
 
+from .mitsuba_map import MitsubaMapping
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,8 +132,72 @@ class SurfaceHit(NamedTuple):
     radius: Any  # sphere radius, scalar
 
 
+class Quadrature(NamedTuple):
+    """Where the energy tests' quadrature puts its nodes for one lobe setting.
+
+    ``axis``: ``"normal"`` (wo about n), ``"mirror"`` (wo about the mirror
+    direction of wi) or ``"half"`` (half vectors h about n, wo = reflect(wi, h),
+    dwo = 4 (wo.h) dwh); ``cap``: polar angle of the cap holding the lobe's
+    mass; ``refine``: times more nodes in theta (a kink where the horizon cuts
+    a broad lobe converges as N^-2).
+    """
+
+    axis: Literal["normal", "mirror", "half"] = "normal"
+    cap: float = math.pi / 2
+    refine: int = 1
+
+
+class Point(NamedTuple):
+    """A setting the property tests evaluate: lobe-local ``params`` and ``options``.
+
+    ``conserving``: the energy test applies (0 < int f cos dwo <= 1 at every
+    incidence for these params); False for settings that are valid but not
+    bounded so (the lecture's un-normalised Phong) or reflect nothing.
+    """
+
+    id: str
+    params: Mapping[str, Any]
+    options: Mapping[str, Any] = {}
+    conserving: bool = True
+
+
+def _hemisphere(p) -> Quadrature:
+    return Quadrature()
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Hints:
+    """What the generic tests need to know about a lobe (not used to render).
+
+    Attributes:
+        points: settings for positivity, reciprocity and energy
+            (``tests/test_bsdf_properties.py``), typically at the top of the
+            reflectance box.
+        example: a typical lobe-local parameter setting with distinct RGB
+            channels (``tests/test_mitsuba_plugins.py``); options vary over
+            their choices there.
+        quadrature: ``quadrature(p) -> Quadrature`` for the energy integrals.
+        reciprocal: f(wi, wo) = f(wo, wi) (Helmholtz).
+    """
+
+    points: tuple[Point, ...] = ()
+    example: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    quadrature: Callable[[Mapping[str, Any]], Quadrature] = _hemisphere
+    reciprocal: bool = True
+
+
 @dataclasses.dataclass(frozen=True)
 class Lobe:
+    """One BSDF lobe (see the module docstring for ``kind``, ``shape``, ``radiance``).
+
+    Attributes:
+        transmissive: light passes through the sphere (refraction), so what
+            the lobe shows depends on the sphere's interior.
+        doc: the model in one line (the README's lobe table shows it).
+        mitsuba: its Mitsuba 3 equivalent (``fitter.bsdf.mitsuba_map``).
+        hints: what the property tests need (``Hints``).
+    """
+
     name: str
     kind: Literal["brdf", "specular"]
     params: tuple[Param, ...]
@@ -138,8 +207,9 @@ class Lobe:
     shape_grad: Callable | None = None
     radiance: Callable | None = None
     doc: str = ""
-    #: ``mitsuba(p, opts) -> dict``: the equivalent Mitsuba 3 BSDF dict (see ``fitter.mitsuba``).
-    mitsuba: Callable | None = None
+    mitsuba: MitsubaMapping | None = None
+    transmissive: bool = False
+    hints: Hints = Hints()
 
     def eval(self, p, opts, n, wi, wo):
         """BRDF value f(wi, wo) in 1/sr, RGB (..., 3), for a ``brdf`` lobe."""

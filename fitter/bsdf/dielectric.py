@@ -17,6 +17,11 @@ the exit directions t_k by a fixed rotation (agrees with explicit tracing to
 ``bounces`` internal reflections are followed; the default 8 leaves < 1e-3
 of the image mean untraced for eta <= 2 (checked in tests).
 
+Mitsuba: the smooth ``dielectric`` (air outside: ext_ior = 1); the
+Beer-Lambert attenuation is a medium, not a BSDF: the sphere's interior
+``homogeneous`` medium with sigma_t = -ln(attenuation), albedo 0, rendered by
+``volpathmis``.
+
 References:
     Teschner, *Materials 3*, "Snell's law", "Total internal reflection",
         "Specular transmission", "Reflectance and transmittance",
@@ -29,6 +34,11 @@ import jax.numpy as jnp
 from .._math import dot, normalize, reflect, safe_pow
 from .base import Lobe, Option, Param
 from .fresnel import fresnel_dielectric, radiance_scale, refract
+from .mitsuba_map import MitsubaMapping, absorbing_medium
+
+#: Path vertices beyond the internal reflections traced here (camera hit,
+#: entry, exit): Mitsuba's max_depth for the same truncation is bounces + this.
+MITSUBA_EXTRA_DEPTH = 3
 
 
 def _radiance(p, opts, hit, env):
@@ -66,9 +76,6 @@ def _radiance(p, opts, hit, env):
 
 
 def _mitsuba(p, opts):
-    """Mitsuba's smooth ``dielectric`` (air outside: ext_ior = 1). The Beer-Lambert
-    ``attenuation`` is a medium, not a BSDF: ``fitter.mitsuba`` adds it as the
-    sphere's interior ``homogeneous`` medium."""
     return {"type": "dielectric", "int_ior": float(p["eta"]), "ext_ior": 1.0}
 
 
@@ -78,10 +85,15 @@ LOBE = Lobe(
     params=(
         Param("eta", 1, 1.5, 1.0, 4.0, "eta", "index of refraction inside / outside"),
         Param("attenuation", 3, 1.0, 0.0, 1.0, "logit",
-              "Beer-Lambert c: transmittance per unit path length (world units), RGB"),
+              "Beer-Lambert transmittance per unit path length (world units)"),
     ),
-    options=(Option("bounces", None, 8, "internal reflections followed (int >= 0)"),),
+    options=(Option("bounces", None, 8, "internal reflections followed"),),
     radiance=_radiance,
-    doc="Transparent sphere: Fresnel reflection + refraction, Beer-Lambert absorption.",
-    mitsuba=_mitsuba,
+    doc="Fresnel reflection + Snell refraction through the sphere, total internal reflection, "
+        "η² radiance scaling (cancels on a full pass), Beer-Lambert c^d with d in world units",
+    transmissive=True,
+    mitsuba=MitsubaMapping(
+        _mitsuba,
+        interior=lambda p, opts: absorbing_medium(p["attenuation"]),
+        max_depth=lambda opts: opts["bounces"] + MITSUBA_EXTRA_DEPTH),
 )

@@ -1,11 +1,14 @@
 """Lambertian diffuse lobe, f = rho_d / pi.
 
+Mitsuba's ``diffuse`` is exactly rho_d / pi.
+
 Reference: Teschner, *Materials 1*, "BRDF for diffuse reflecting material".
 """
 
 import jax.numpy as jnp
 
-from .base import Lobe, Param
+from .base import Hints, Lobe, Param, Point
+from .mitsuba_map import MitsubaMapping, rgb
 
 
 def _shape(p, opts, c):
@@ -13,18 +16,19 @@ def _shape(p, opts, c):
 
 
 def _mitsuba(p, opts):
-    """Mitsuba's ``diffuse`` is exactly rho_d / pi."""
-    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": [float(x) for x in p["rho_d"]]}}
+    return {"type": "diffuse", "reflectance": rgb(p["rho_d"])}
 
 
 LOBE = Lobe(
     name="lambert",
     kind="brdf",
     params=(
-        Param("rho_d", 3, 0.5, 0.0, 1.0, "logit", "diffuse (bihemispherical) reflectance, RGB"),
+        Param("rho_d", 3, 0.5, 0.0, 1.0, "logit", "diffuse (bihemispherical) reflectance"),
     ),
     scale="rho_d",
     shape=_shape,
-    doc="Lambert: f = rho_d / pi.",
-    mitsuba=_mitsuba,
+    doc="ρ_d/π",
+    mitsuba=MitsubaMapping(_mitsuba),
+    hints=Hints(points=(Point("lambert", {"rho_d": (1.0, 1.0, 1.0)}),),
+                example={"rho_d": (0.6, 0.4, 0.2)}),
 )

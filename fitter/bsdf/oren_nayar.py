@@ -14,6 +14,9 @@ sin(alpha) sin(beta) = sin(theta_i) sin(theta_o), cos(beta) = max(cos_i, cos_o),
 
     max(0, cos dphi) sin(alpha) tan(beta) = max(0, wi.wo - cos_i cos_o) / max(cos_i, cos_o).
 
+Mitsuba has no Oren-Nayar: the ``fitter_oren_nayar`` plugin here evaluates
+the same A/B form in drjit (``reflectance`` rgb, ``sigma`` radians).
+
 References:
     Teschner, *Materials 3*, "Oren-Nayar diffuse material".
     Oren, Nayar (1994), "Generalization of Lambert's reflectance model",
@@ -23,7 +26,8 @@ References:
 import jax.numpy as jnp
 
 from .._math import safe_div
-from .base import Lobe, Param
+from .base import Hints, Lobe, Param, Point
+from .mitsuba_map import MitsubaMapping, cosine_sampled, props_rgb, rgb
 
 
 def coefficients(sigma):
@@ -53,22 +57,49 @@ def _shape_grad(p, opts, c):
 
 
 def _mitsuba(p, opts):
-    """Mitsuba has no Oren-Nayar: ``fitter.mitsuba`` registers this plugin."""
-    return {"type": "fitter_oren_nayar", "reflectance": {"type": "rgb", "value": [float(x) for x in p["rho_d"]]},
-            "sigma": float(p["sigma"])}
+    return {"type": "fitter_oren_nayar", "reflectance": rgb(p["rho_d"]), "sigma": float(p["sigma"])}
+
+
+def _plugin(mi):
+    import drjit as dr
+
+    base = cosine_sampled(mi)
+
+    class OrenNayar(base):
+        """rho/pi (A + B max(0, wi.wo - ci co) / max(ci, co)), as ``_shape``."""
+
+        def __init__(self, props):
+            base.__init__(self, props)
+            self.rho = props_rgb(mi, props, "reflectance", 0.5)
+            a, b = coefficients(float(props.get("sigma", 0.3)))
+            self.a, self.b = mi.Float(a), mi.Float(b)
+
+        def _value(self, wi, wo):
+            ci, co = wi.z, wo.z
+            term = dr.maximum(dr.dot(wi, wo) - ci * co, 0.0) / dr.maximum(dr.maximum(ci, co), 1e-12)
+            return self.rho * (dr.inv_pi * (self.a + self.b * term))
+
+        def to_string(self):
+            return f"fitter_oren_nayar[A={self.a}, B={self.b}]"
+
+    return OrenNayar
 
 
 LOBE = Lobe(
     name="oren_nayar",
     kind="brdf",
     params=(
-        Param("rho_d", 3, 0.5, 0.0, 1.0, "logit", "diffuse reflectance, RGB"),
+        Param("rho_d", 3, 0.5, 0.0, 1.0, "logit", "diffuse reflectance"),
         Param("sigma", 1, 0.3, 0.0, 1.5, "box",
-              "std-dev of facet slope angle, radians (lecture: sigma^2 <= 1)"),
+              "std-dev of the facet slope angle, radians (lecture: σ² ≤ 1)"),
     ),
     scale="rho_d",
     shape=_shape,
     shape_grad=_shape_grad,
-    doc="Oren-Nayar (qualitative A/B form); sigma = 0 is Lambert.",
-    mitsuba=_mitsuba,
+    doc="lecture's A/B form; σ = std-dev of the facet slope angle; σ = 0 is Lambert exactly",
+    mitsuba=MitsubaMapping(_mitsuba, plugins={"fitter_oren_nayar": _plugin}),
+    hints=Hints(
+        points=tuple(Point(f"oren_nayar-s{s:g}", {"rho_d": (1.0, 1.0, 1.0), "sigma": s})
+                     for s in (0.5, 1.5)),
+        example={"rho_d": (0.6, 0.5, 0.4), "sigma": 0.7}),
 )

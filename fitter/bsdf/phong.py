@@ -10,13 +10,19 @@ it is the lecture's model, and flagged by ``tests/test_bsdf_properties.py``.
 
 pow is evaluated as exp(e log c) so e up to 1e4 is exact in float64.
 
+Mitsuba has no Phong: the ``fitter_phong`` plugin here evaluates the same
+lobe in drjit (``specular_reflectance`` rgb, ``exponent``, ``normalized``).
+
 Reference: Teschner, *Materials 2*, "Example - glossy / specular reflection".
 """
+
+import math
 
 import jax.numpy as jnp
 
 from .._math import safe_pow
-from .base import Lobe, Option, Param
+from .base import Hints, Lobe, Option, Param, Point, Quadrature
+from .mitsuba_map import MitsubaMapping, cosine_sampled, props_rgb, rgb
 
 
 def _shape(p, opts, c):
@@ -42,22 +48,65 @@ def _shape_grad(p, opts, c):
 
 
 def _mitsuba(p, opts):
-    """Mitsuba has no Phong: ``fitter.mitsuba`` registers this plugin."""
-    return {"type": "fitter_phong", "specular_reflectance": {"type": "rgb", "value": [float(x) for x in p["rho_s"]]},
+    return {"type": "fitter_phong", "specular_reflectance": rgb(p["rho_s"]),
             "exponent": float(p["e"]), "normalized": bool(opts["normalized"])}
 
+
+def _plugin(mi):
+    import drjit as dr
+
+    base = cosine_sampled(mi)
+
+    class Phong(base):
+        """rho_s cos^e(alpha), cos(alpha) = 2 ci co - wi.wo, optionally (e+2)/(2 pi)."""
+
+        def __init__(self, props):
+            base.__init__(self, props)
+            self.rho = props_rgb(mi, props, "specular_reflectance", 0.5)
+            e = float(props.get("exponent", 20.0))
+            self.e = mi.Float(e)
+            self.norm = mi.Float((e + 2.0) / (2.0 * math.pi)
+                                 if props.get("normalized", False) else 1.0)
+
+        def _value(self, wi, wo):
+            c = 2.0 * wi.z * wo.z - dr.dot(wi, wo)
+            lobe = dr.select(c > 0, dr.exp(self.e * dr.log(dr.maximum(c, 1e-30))), 0.0)
+            return self.rho * (lobe * self.norm)
+
+        def to_string(self):
+            return f"fitter_phong[e={self.e}, norm={self.norm}]"
+
+    return Phong
+
+
+def _quadrature(p):
+    """Nodes about the mirror direction, within the cap where cos^e > e^-40."""
+    return Quadrature("mirror", min(math.pi, math.sqrt(80.0 / float(p["e"]))))
+
+
+_ONES = (1.0, 1.0, 1.0)
 
 LOBE = Lobe(
     name="phong",
     kind="brdf",
     params=(
-        Param("rho_s", 3, 0.5, 0.0, 1.0, "logit", "specular reflectance, RGB"),
+        Param("rho_s", 3, 0.5, 0.0, 1.0, "logit", "specular reflectance"),
         Param("e", 1, 20.0, 1.0, 1e4, "log", "specular exponent"),
     ),
-    options=(Option("normalized", (False, True), False, "scale by (e + 2) / (2 pi)"),),
+    options=(Option("normalized", (False, True), False,
+                    "scale by (e + 2)/(2π) so the lobe's albedo at normal incidence is ρ_s"),),
     scale="rho_s",
     shape=_shape,
     shape_grad=_shape_grad,
-    doc="Phong lobe rho_s cos^e(alpha), optionally energy-normalised.",
-    mitsuba=_mitsuba,
+    doc="ρ_s cos^e α; normalized variant × (e+2)/2π. The un-normalized lecture form can "
+        "exceed energy conservation (flagged in the tests)",
+    mitsuba=MitsubaMapping(_mitsuba, plugins={"fitter_phong": _plugin}),
+    hints=Hints(
+        points=(*(Point(f"phong_norm-e{e:g}", {"rho_s": _ONES, "e": e}, {"normalized": True})
+                  for e in (1.0, 10.0, 100.0, 1e4)),
+                # The lecture's form reflects up to 2 pi / (e + 2) > 1 (see above).
+                *(Point(f"phong_lecture-e{e:g}", {"rho_s": _ONES, "e": e},
+                        {"normalized": False}, conserving=False) for e in (1.0, 50.0))),
+        example={"rho_s": (0.5, 0.4, 0.3), "e": 40.0},
+        quadrature=_quadrature),
 )

@@ -10,17 +10,19 @@ point light            ``point`` (``intensity``, W/sr)
 directional light      ``directional`` (``irradiance``)
 environment            none (black), ``constant``, ``envmap`` (``scale``)
 lobes                  ``Lobe.mitsuba(p, opts)``; several: ``fitter_sum``
-dielectric             ``dielectric`` (ext_ior 1) + interior ``homogeneous`` medium,
-                       sigma_t = -ln(attenuation), albedo 0
-integrator             ``direct`` (1 emitter sample, no BSDF samples) for opaque
-                       lobes; ``path`` with a mirror; ``volpathmis`` for a dielectric
+interior medium        ``Lobe.mitsuba.interior`` (the dielectric's absorption)
+integrator             ``direct`` (1 emitter sample, no BSDF samples) unless a lobe
+                       asks for a depth (``Lobe.mitsuba.max_depth``): ``path``,
+                       or ``volpathmis`` when a lobe has an interior medium
 sampler                ``stratified`` (spp rounded up to a square), fixed seed
 =====================  ==========================================================
 
 One difference in meaning is refused rather than translated: the project's
 opaque ("brdf") lobes are lit by the point/directional lights only, while a
 Mitsuba constant/envmap emitter would light them too. A material with an
-opaque lobe therefore needs a black environment here.
+opaque lobe therefore needs a black environment here. So is a transmissive
+lobe summed with others: Mitsuba would apply the whole sum at the internal
+hits, the project traces the interior with the transmissive lobe alone.
 """
 
 from __future__ import annotations
@@ -28,18 +30,13 @@ from __future__ import annotations
 import math
 import os
 
-import numpy as np
-
-from ..material import Material
+from ..bsdf.mitsuba_map import SIGMA_T_MAX as SIGMA_T_MAX, absorbing_medium, rgb as _rgb
+from ..material import Material, lobe_params
 from ..scene import DirectionalLight, PointLight, Scene
 from ._variant import MitsubaError
 
-#: Extra vertices beyond the internal reflections the project traces
-#: (camera hit, entry, exit): Mitsuba's max_depth for the same truncation.
-_DIELECTRIC_DEPTH = 3
-_MIRROR_DEPTH = 4
-#: Largest sigma_t (1 / world unit) given to Mitsuba for an attenuation of 0.
-SIGMA_T_MAX = 1e4
+#: An absorbing medium (kept under its former name).
+medium_dict = absorbing_medium
 
 
 def stratified_spp(spp: int) -> int:
@@ -50,61 +47,59 @@ def stratified_spp(spp: int) -> int:
     return r * r
 
 
-def _rgb(v):
-    return {"type": "rgb", "value": [float(x) for x in np.broadcast_to(np.asarray(v, float), 3)]}
-
-
 def _vec(v):
     return [float(x) for x in v]
 
 
-def bsdf_dict(material: Material, params) -> dict:
-    """The Mitsuba BSDF of the material's summed lobes (without the dielectric's medium)."""
-    full = material.full_params(params)
-    parts = []
+def _mappings(material: Material):
+    """(lobe, its Mitsuba mapping, its options) for each lobe of the material."""
+    out = []
     for lobe in material.lobe_objects:
         if lobe.mitsuba is None:
             raise MitsubaError(f"lobe {lobe.name!r} has no Mitsuba mapping (Lobe.mitsuba)")
-        p = {k.split(".", 1)[1]: v for k, v in full.items() if k.startswith(lobe.name + ".")}
-        parts.append(lobe.mitsuba(p, material.options_of(lobe.name)))
+        out.append((lobe, lobe.mitsuba, material.options_of(lobe.name)))
+    return out
+
+
+def bsdf_dict(material: Material, params) -> dict:
+    """The Mitsuba BSDF of the material's summed lobes (without any interior medium)."""
+    full = material.full_params(params)
+    parts = [m.bsdf(lobe_params(full, lobe.name), opts) for lobe, m, opts in _mappings(material)]
     if len(parts) == 1:
         return parts[0]
     return {"type": "fitter_sum", **{f"bsdf_{i}": d for i, d in enumerate(parts)}}
 
 
-def medium_dict(attenuation) -> dict | None:
-    """Interior absorbing medium with transmittance ``attenuation`` per unit length.
-
-    sigma_t = -ln(c) (RGB); Mitsuba rejects RGB sigma_t above 1, so the
-    largest channel goes into ``scale``. None when nothing is absorbed.
-    """
-    c = np.broadcast_to(np.asarray(attenuation, dtype=np.float64), 3)
-    sigma = np.where(c > 0, -np.log(np.where(c > 0, c, 1.0)), SIGMA_T_MAX)
-    sigma = np.clip(sigma, 0.0, SIGMA_T_MAX)
-    scale = float(sigma.max())
-    if scale == 0.0:
-        return None
-    return {"type": "homogeneous", "albedo": 0.0, "sigma_t": _rgb(sigma / scale),
-            "scale": scale}
+def interior_dict(material: Material, params) -> dict | None:
+    """The medium inside the sphere, from the lobe that has one (None: vacuum)."""
+    full = material.full_params(params)
+    for lobe, m, opts in _mappings(material):
+        medium = m.interior(lobe_params(full, lobe.name), opts) if m.interior else None
+        if medium is not None:
+            return medium
+    return None
 
 
 def integrator_dict(material: Material) -> dict:
-    kinds = {lb.kind for lb in material.lobe_objects}
-    if "dielectric" in material.lobes:
-        depth = material.options_of("dielectric")["bounces"] + _DIELECTRIC_DEPTH
+    maps = _mappings(material)
+    depths = [m.max_depth(opts) for _, m, opts in maps if m.max_depth is not None]
+    if not depths:
+        return {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0}
+    depth = max(depths)
+    if any(m.interior is not None for _, m, _ in maps):
         # volpathmis = volpath + spectral MIS over the RGB channels: 3x less noise
         # than volpath for an RGB absorption (measured), same estimator otherwise.
         return {"type": "volpathmis", "max_depth": depth, "rr_depth": depth + 1}
-    if "specular" in kinds:
-        return {"type": "path", "max_depth": _MIRROR_DEPTH, "rr_depth": _MIRROR_DEPTH + 1}
-    return {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0}
+    return {"type": "path", "max_depth": depth, "rr_depth": depth + 1}
 
 
 def check_translatable(scene: Scene, material: Material) -> None:
     """Raise MitsubaError where Mitsuba would render a different meaning."""
-    if "dielectric" in material.lobes and len(material.lobes) > 1:
-        raise MitsubaError("the Mitsuba translation supports the dielectric lobe only on its "
-                           f"own, not summed with {[n for n in material.lobes if n != 'dielectric']}")
+    clear = [lb.name for lb in material.lobe_objects if lb.transmissive]
+    if clear and len(material.lobes) > 1:
+        raise MitsubaError(f"the Mitsuba translation supports the transmissive lobe {clear[0]!r} "
+                           f"only on its own, not summed with "
+                           f"{[n for n in material.lobes if n != clear[0]]}")
     opaque = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
     if opaque and scene.environment.type != "black":
         raise MitsubaError(
@@ -167,11 +162,9 @@ def scene_dict(scene: Scene, material: Material, params, *, spp: int, seed: int,
     check_translatable(scene, material)
     sphere = {"type": "sphere", "center": _vec(scene.sphere.center),
               "radius": float(scene.sphere.radius), "bsdf": bsdf_dict(material, params)}
-    if "dielectric" in material.lobes:
-        full = material.full_params(params)
-        medium = medium_dict(full["dielectric.attenuation"])
-        if medium is not None:
-            sphere["interior"] = medium
+    medium = interior_dict(material, params)
+    if medium is not None:
+        sphere["interior"] = medium
     sensor = _camera(mi, scene)
     sensor["film"] = {"type": "hdrfilm", "width": int(scene.width), "height": int(scene.height),
                       "rfilter": {"type": "box"}, "pixel_format": "rgb",
