@@ -13,6 +13,8 @@ The lobe: a scaled Lambert, f = k / pi with a grey albedo k (Teschner,
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import jax.numpy as jnp
 import numpy as np
@@ -140,3 +142,13 @@ def test_mitsuba_plugin_and_render():
     interior = cover.reshape(SCENE.height, SCENE.width) == 1.0
     rel = abs(theirs[interior].mean() / ours[interior].mean() - 1.0)
     assert rel < MEAN_REL_TOL, rel
+
+
+def test_lobe_modules_do_not_import_mitsuba():
+    """Mitsuba mappings live in the lobe modules, yet Mitsuba and drjit load only
+    when ``fitter.mitsuba`` is used (style: ``import fitter`` stays fast)."""
+    code = ("import sys, fitter, fitter.bsdf, fitter.bsdf.tables; "
+            "print([m for m in sys.modules if m.split('.')[0] in ('mitsuba', 'drjit')])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout
+    assert out.strip() == "[]"

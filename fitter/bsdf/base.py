@@ -58,7 +58,8 @@ class Param:
             finite with finite gradients everywhere inside it.
         transform: how the fitter maps it to an unconstrained coordinate,
             one of ``fitter.transforms.TRANSFORMS``.
-        doc: meaning and units.
+        doc: meaning and units (configs/README.md's parameter table shows
+            it; ``fitter.bsdf.tables``).
         free: whether the fitter frees it by default.
     """
 
@@ -78,7 +79,10 @@ class Param:
 
 @dataclasses.dataclass(frozen=True)
 class Option:
-    """A discrete lobe setting (static: changing it recompiles)."""
+    """A discrete lobe setting (static: changing it recompiles).
+
+    ``choices`` None: any int >= 0. ``doc`` is configs/README.md's meaning.
+    """
 
     name: str
     choices: tuple[Any, ...]
