@@ -57,7 +57,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # argparse printed usage and the reason
         return EXIT_OK if exc.code == 0 else EXIT_INPUT
     try:
-        with _sigterm_as_interrupt():
+        with _signals_as_interrupt():
             return args.run(args)
     except KeyboardInterrupt:
         print("fitter: interrupted", file=sys.stderr)
@@ -90,23 +90,47 @@ def _enable_compilation_cache() -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
 
+_INTERRUPTED: list[int] = []  # signals received during this command
+
+
+def _check_interrupt() -> None:
+    if _INTERRUPTED:
+        raise KeyboardInterrupt
+
+
 @contextlib.contextmanager
-def _sigterm_as_interrupt():
-    """Let SIGTERM unwind like Ctrl-C so staged output folders are removed."""
+def _signals_as_interrupt():
+    """Let SIGINT and SIGTERM unwind as ``KeyboardInterrupt``, so staged outputs are removed.
+
+    SIGINT is set explicitly: a shell starts background jobs with it ignored,
+    and ``kill -INT`` must still stop a fit rather than let it replace ``--out``.
+    The signal is also remembered, because Python drops an exception raised
+    inside a garbage-collector callback (JAX has one): ``_check_interrupt``
+    raises it again at the next stage boundary.
+    """
     import signal
 
     def handler(signum, frame):
+        _INTERRUPTED.append(signum)
         raise KeyboardInterrupt
 
+    def unraisable(info, default=sys.unraisablehook):
+        if not issubclass(info.exc_type, KeyboardInterrupt):  # remembered; raised later
+            default(info)
+
+    _INTERRUPTED.clear()
+    hook, sys.unraisablehook = sys.unraisablehook, unraisable
     try:
-        previous = signal.signal(signal.SIGTERM, handler)
+        previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, handler),
+                    signal.SIGINT: signal.signal(signal.SIGINT, handler)}
     except ValueError:  # not the main thread: leave signals alone
-        yield
-        return
+        previous = {}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, prev in previous.items():
+            signal.signal(sig, prev)
+        sys.unraisablehook = hook
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -181,12 +205,20 @@ class _Log:
         from rich.console import Console
 
         self.console = Console(stderr=True, quiet=quiet, highlight=False)
+        if quiet:  # library warnings too (JAX's, Mitsuba's): results go to --out
+            import logging
+            import warnings
+
+            warnings.simplefilter("ignore")
+            logging.disable(logging.WARNING)
 
     @contextlib.contextmanager
     def stage(self, text: str):
+        _check_interrupt()
         t0 = time.perf_counter()
         with self.console.status(text + " ..."):
             yield
+        _check_interrupt()
         self.console.print(f"[dim]{text}: {time.perf_counter() - t0:.2f} s[/dim]")
 
     def print(self, *args, **kwargs):
@@ -305,6 +337,7 @@ def cmd_fit(args) -> int:
         result = outcome.to_dict()
         with log.stage("writing outputs"):
             write_outcome(tmp, outcome, result)
+        _check_interrupt()  # a swallowed signal must not let the new result replace --out
     if args.json:
         print(json.dumps(result, indent=2, allow_nan=False))
     else:

@@ -137,3 +137,29 @@ def test_config_written_beside_a_result_stays_valid_toml_with_odd_paths(small, t
     data = tomllib.loads((out / "config.toml").read_text())
     assert data["fit"]["target"] == str(odd)
     assert dumps_toml(data)  # and it round-trips
+
+
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
+def test_a_signal_during_start_up_stops_the_run_and_keeps_the_old_result(
+        small, tmp_path, signal_name):
+    # SIGINT arrives while JAX imports (inside its gc callback, where Python drops
+    # the KeyboardInterrupt); a background job's SIGINT is ignored by the shell.
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "res"
+    out.mkdir()
+    (out / "keep.txt").write_text("old")
+    (out / ".fitter-output").write_text("{}")
+    proc = subprocess.Popen([sys.executable, "-m", "fitter", "fit", small, "--out", str(out),
+                             "--quiet"], stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    time.sleep(0.5)
+    proc.send_signal(getattr(signal, signal_name))
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip().endswith("fitter: interrupted") and "Traceback" not in err
+    assert (out / "keep.txt").read_text() == "old"
+    assert sorted(os.listdir(tmp_path)) == ["res"]
