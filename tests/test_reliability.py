@@ -153,9 +153,12 @@ def test_a_signal_during_start_up_stops_the_run_and_keeps_the_old_result(
     out.mkdir()
     (out / "keep.txt").write_text("old")
     (out / ".fitter-output").write_text("{}")
-    proc = subprocess.Popen([sys.executable, "-m", "fitter", "fit", small, "--out", str(out),
-                             "--quiet"], stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    ignored_then_fitter = (  # as a shell starts a background job
+        "import runpy, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
+        f"sys.argv = ['fitter', 'fit', {small!r}, '--out', {str(out)!r}, '--quiet']; "
+        "runpy.run_module('fitter', run_name='__main__')")
+    proc = subprocess.Popen([sys.executable, "-c", ignored_then_fitter],
+                            stderr=subprocess.PIPE, text=True)
     time.sleep(0.5)
     proc.send_signal(getattr(signal, signal_name))
     _, err = proc.communicate(timeout=120)
