@@ -17,12 +17,12 @@ integrator             ``direct`` (1 emitter sample, no BSDF samples) unless a l
 sampler                ``stratified`` (spp rounded up to a square), fixed seed
 =====================  ==========================================================
 
-One difference in meaning is refused rather than translated: the project's
+Two differences in meaning are refused rather than translated. The project's
 opaque ("brdf") lobes are lit by the point/directional lights only, while a
-Mitsuba constant/envmap emitter would light them too. A material with an
-opaque lobe therefore needs a black environment here. So is a transmissive
-lobe summed with others: Mitsuba would apply the whole sum at the internal
-hits, the project traces the interior with the transmissive lobe alone.
+Mitsuba constant/envmap emitter would light them too: a material with an
+opaque lobe needs a black environment here. And a transmissive lobe
+(``Lobe.transmissive``) must be alone: Mitsuba would apply the whole sum at
+the internal hits, the project traces the interior with that lobe only.
 """
 
 from __future__ import annotations
