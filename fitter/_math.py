@@ -10,7 +10,7 @@ contain NaN where using where").
 
 from __future__ import annotations
 
-import jax.numpy as jnp
+from ._lazy import jnp
 
 
 def dot(a, b):

@@ -40,9 +40,9 @@ import dataclasses
 import math
 from typing import Any, Callable, Literal, Mapping, NamedTuple
 
-import jax.numpy as jnp
 import numpy as np
 
+from .._lazy import jnp
 from .mitsuba_map import MitsubaMapping
 
 

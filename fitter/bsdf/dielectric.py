@@ -28,9 +28,7 @@ References:
         "Light attenuation" (Beer-Lambert L_a = c^d L_b).
 """
 
-import jax
-import jax.numpy as jnp
-
+from .._lazy import jax, jnp
 from .._math import dot, normalize, reflect, safe_pow
 from .base import Lobe, Option, Param
 from .fresnel import fresnel_dielectric, radiance_scale, refract

@@ -9,8 +9,7 @@ References:
 
 from __future__ import annotations
 
-import jax.numpy as jnp
-
+from .._lazy import jnp
 from .._math import dot, safe_div, safe_sqrt
 
 

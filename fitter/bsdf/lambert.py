@@ -5,8 +5,7 @@ Mitsuba's ``diffuse`` is exactly rho_d / pi.
 Reference: Teschner, *Materials 1*, "BRDF for diffuse reflecting material".
 """
 
-import jax.numpy as jnp
-
+from .._lazy import jnp
 from .base import Hints, Lobe, Param, Point
 from .mitsuba_map import MitsubaMapping, rgb
 

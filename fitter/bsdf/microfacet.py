@@ -15,8 +15,7 @@ References:
 
 from __future__ import annotations
 
-import jax.numpy as jnp
-
+from .._lazy import jnp
 from .._math import safe_div, safe_sqrt
 
 #: Smallest roughness evaluated (Mitsuba clamps alpha the same way).

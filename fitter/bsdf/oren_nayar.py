@@ -23,8 +23,7 @@ References:
         SIGGRAPH, eq. 30 (qualitative model).
 """
 
-import jax.numpy as jnp
-
+from .._lazy import jnp
 from .._math import safe_div
 from .base import Hints, Lobe, Param, Point
 from .mitsuba_map import MitsubaMapping, cosine_sampled, props_rgb, rgb

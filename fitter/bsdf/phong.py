@@ -18,8 +18,7 @@ Reference: Teschner, *Materials 2*, "Example - glossy / specular reflection".
 
 import math
 
-import jax.numpy as jnp
-
+from .._lazy import jnp
 from .._math import safe_pow
 from .base import Hints, Lobe, Option, Param, Point, Quadrature
 from .mitsuba_map import MitsubaMapping, cosine_sampled, props_rgb, rgb

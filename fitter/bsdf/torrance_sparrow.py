@@ -23,8 +23,7 @@ References:
 
 import math
 
-import jax.numpy as jnp
-
+from .._lazy import jnp
 from .._math import safe_div
 from .base import Hints, Lobe, Option, Param, Point, Quadrature
 from .fresnel import fresnel_dielectric, fresnel_dielectric_deta
