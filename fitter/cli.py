@@ -331,6 +331,7 @@ def cmd_fit(args) -> int:
     job = job.replace(fit=job.fit.replace(target=target_path))  # config.toml records it
     out = check_out(args.out or os.path.join("out", job.name))  # before any fitting
     _enable_compilation_cache()
+    _import_in_background("matplotlib.figure", "matplotlib.backends.backend_agg", "colour")
     with staged_dir(out) as tmp:
         outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
                                    stage=log.stage)
@@ -343,6 +344,19 @@ def cmd_fit(args) -> int:
     else:
         _print_summary(outcome, out)
     return EXIT_OK if outcome.converged else EXIT_NOT_CONVERGED
+
+
+def _import_in_background(*modules: str) -> None:
+    """Import the report's libraries (~1 s) while the fit runs; XLA releases the GIL."""
+    import importlib
+    import threading
+
+    def work():
+        for name in modules:
+            with contextlib.suppress(Exception):  # the report imports it again and reports
+                importlib.import_module(name)
+
+    threading.Thread(target=work, name="fitter-imports", daemon=True).start()
 
 
 def _print_summary(outcome, out: str) -> None:

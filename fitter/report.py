@@ -52,17 +52,16 @@ def make_report(path: str, outcome: Outcome, title: str = "") -> None:
     The residual panel greys out the pixels the fit did not use; ``title`` is
     the headline, e.g. the config name and lobes.
     """
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     target = np.asarray(outcome.target, dtype=np.float64)
     fit = np.asarray(outcome.rendered, dtype=np.float64)
     positive = target[target > 0]
     white = float(np.percentile(positive, WHITE_PERCENTILE)) if positive.size else 1.0
 
-    fig = plt.figure(figsize=(17, 8.6), dpi=100)
+    fig = Figure(figsize=(17, 8.6), dpi=100)  # no pyplot: no global state, faster import
+    FigureCanvasAgg(fig)
     grid = fig.add_gridspec(3, 4, height_ratios=[0.45, 4.2, 2.1], hspace=0.18, wspace=0.12,
                             left=0.02, right=0.98, top=0.97, bottom=0.03)
     _headline(fig.add_subplot(grid[0, :]), outcome, title)
@@ -90,7 +89,6 @@ def make_report(path: str, outcome: Outcome, title: str = "") -> None:
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
     fig.savefig(path, format="png")
-    plt.close(fig)
 
 
 def _frame(ax, title: str) -> None:
@@ -135,7 +133,7 @@ def _badge(ax, x: float, text: str, colour: str) -> float:
 
 
 def _residual(fig, ax, residual: np.ndarray, fitted) -> None:
-    import matplotlib.pyplot as plt
+    import matplotlib
 
     res = residual.mean(axis=-1)
     if fitted is not None:
@@ -143,7 +141,7 @@ def _residual(fig, ax, residual: np.ndarray, fitted) -> None:
     finite = np.abs(res[np.isfinite(res)])
     scale = float(np.percentile(finite, RESIDUAL_PERCENTILE)) if finite.size else 0.0
     scale = scale if scale > 0 else 1e-12
-    cmap = plt.get_cmap("RdBu_r").with_extremes(bad="0.6")
+    cmap = matplotlib.colormaps["RdBu_r"].with_extremes(bad="0.6")
     im = ax.imshow(res, cmap=cmap, vmin=-scale, vmax=scale, interpolation="nearest")
     _frame(ax, "residual: target − fit (RGB mean)" if fitted is None
            else "residual (grey: not fitted)")
