@@ -36,6 +36,9 @@ BIAS_SIGMAS = 100.0
 INVISIBLE_DE = 1.0
 JND_DE = 2.3
 
+#: Smallest font a text is shrunk to before lines are dropped (points).
+MIN_FONT = 6.5
+
 GOOD, WARN, BAD, NEUTRAL = "#1a7f37", "#e08a00", "#c62828", "#555555"
 
 
@@ -47,7 +50,15 @@ def display(image: np.ndarray, white: float) -> np.ndarray:
 
 
 def make_report(path: str, outcome: Outcome, title: str = "") -> None:
-    """Write the report PNG of a job's ``outcome`` (``fitter.pipeline``) to ``path``.
+    """Write the report PNG of a job's ``outcome`` (``fitter.pipeline``) to ``path``."""
+    fig = build_report(outcome, title)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fig.savefig(path, format="png")
+
+
+def build_report(outcome: Outcome, title: str = ""):
+    """The report as a matplotlib ``Figure``; every text is fitted inside its panel.
 
     The residual panel greys out the pixels the fit did not use; ``title`` is
     the headline, e.g. the config name and lobes.
@@ -85,10 +96,7 @@ def make_report(path: str, outcome: Outcome, title: str = "") -> None:
 
     _param_table(fig.add_subplot(grid[2, :3]), outcome)
     _facts(fig.add_subplot(grid[2, 3]), outcome)
-
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fig.savefig(path, format="png")
+    return fig
 
 
 def _frame(ax, title: str) -> None:
@@ -118,7 +126,8 @@ def _headline(ax, outcome: Outcome, title: str) -> None:
         bits.append(f"PSNR {fmt(v.psnr_db, '.1f')} dB, "
                     f"ΔE2000 mean {fmt(de, '.2g')}, max {fmt(v.delta_e2000_max, '.2g')}")
     bits.append(f"image RMSE {fmt(res.rmse, '.3g')}")
-    ax.text(x_text, 0.5, "  |  ".join(bits), fontsize=12, va="center")
+    text = ax.text(x_text, 0.5, "  |  ".join(bits), fontsize=12, va="center")
+    _fit_inside(text, ax)
 
 
 def _badge(ax, x: float, text: str, colour: str) -> float:
@@ -191,6 +200,11 @@ def _param_table(ax, outcome: Outcome) -> None:
     table.set_fontsize(10)
     table.scale(1.0, 1.6)
     table.auto_set_column_width(list(range(len(header))))
+    renderer = ax.figure.canvas.get_renderer()
+    size = 10.0
+    while size > MIN_FONT and not _inside(table.get_window_extent(renderer), ax, renderer):
+        size -= 0.5
+        table.set_fontsize(size)
     if truth:
         ax.set_title(f"|fit − truth| vs stderr: green <= {NOISE_SIGMAS:g} (noise), "
                      f"amber <= {BIAS_SIGMAS:g} (small bias), red beyond (wrong)",
@@ -212,9 +226,11 @@ def _facts(ax, outcome: Outcome) -> None:
     v = outcome.validation
     if v is not None:
         lines.append(f"Mitsuba {v.spp} spp: RMSE {fmt(v.rmse, '.3g')}")
-    for w in res.warnings[:4]:
+    for w in res.warnings:
         lines.append("warning: " + _wrap(w, 44))
-    ax.text(0.0, 1.0, "\n".join(lines), va="top", ha="left", fontsize=10, family="monospace")
+    text = ax.text(0.0, 1.0, "\n".join(lines), va="top", ha="left", fontsize=10,
+                   family="monospace")
+    _fit_inside(text, ax)
 
 
 def _wrap(text: str, width: int) -> str:
@@ -222,6 +238,27 @@ def _wrap(text: str, width: int) -> str:
 
     return "\n  ".join(textwrap.wrap(text, width)) or ""
 
+
+def _inside(extent, ax, renderer) -> bool:
+    box = ax.get_window_extent(renderer)
+    return (extent.x0 >= box.x0 - 1 and extent.x1 <= box.x1 + 1
+            and extent.y0 >= box.y0 - 1 and extent.y1 <= box.y1 + 1)
+
+
+def _fit_inside(text, ax) -> None:
+    """Shrink ``text`` to fit its axes; past ``MIN_FONT``, drop its last lines
+    with a note (the full text is in result.json)."""
+    renderer = ax.figure.canvas.get_renderer()
+    size = text.get_fontsize()
+    while size > MIN_FONT and not _inside(text.get_window_extent(renderer), ax, renderer):
+        size -= 0.5
+        text.set_fontsize(size)
+    lines = text.get_text().split("\n")
+    while len(lines) > 1 and not _inside(text.get_window_extent(renderer), ax, renderer):
+        lines = lines[:-2] + ["... (more in result.json)"]
+        text.set_text("\n".join(lines))
+    if not _inside(text.get_window_extent(renderer), ax, renderer):  # one line, too wide
+        text.set_text(text.get_text()[:60] + "...")
 
 def fmt(value, spec: str = ".5g") -> str:
     """A number, an array or a list of numbers as text; "n/a" for None or NaN."""
