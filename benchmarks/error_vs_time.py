@@ -1,4 +1,4 @@
-"""Error against run time for one (case, resolution, method): the worker of ``fitter bench``.
+"""Error against run time for one (case, resolution, method): a worker of ``benchmarks/run.py``.
 
 Sampling along the optimization: each method is driven step by step and the
 parameters are recorded after every iteration, with the wall-clock time spent

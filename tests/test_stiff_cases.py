@@ -17,7 +17,7 @@ answer (status converged, |error| > 5 reported stderr and > tolerance; see
   rho_d = 0 or 1), where the fitted coordinate runs to infinity, or the lobe
   is barely visible (eta = 1.02: F(0) = 1e-4).
 
-The whole table (and float32) is swept by ``fitter bench``.
+The whole table (and float32) is swept by ``python benchmarks/run.py``.
 """
 
 from __future__ import annotations
