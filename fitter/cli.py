@@ -71,23 +71,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INPUT
 
 
-def _enable_compilation_cache() -> None:
-    """Keep compiled solvers on disk, so a repeated job skips XLA compilation.
-
-    Folder: ``$FITTER_CACHE_DIR``, else ``$XDG_CACHE_HOME/fitter/jax`` (default
-    ``~/.cache/fitter/jax``); ``FITTER_CACHE_DIR=""`` turns it off. Set only
-    by the commands that compile (after their inputs are checked).
-    """
-    folder = os.environ.get("FITTER_CACHE_DIR")
-    if folder is None:
-        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        folder = os.path.join(base, "fitter", "jax")
-    if not folder:
-        return
-    import jax
-
-    jax.config.update("jax_compilation_cache_dir", folder)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+# Shared with fitter.batch workers (fitter.compilation_cache); the name is kept.
+from .compilation_cache import enable_compilation_cache as _enable_compilation_cache  # noqa: E402
 
 
 _INTERRUPTED: list[int] = []  # signals received during this command
@@ -191,6 +176,27 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--out", metavar="IMG", required=True)
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(run=cmd_render)
+
+    b = sub.add_parser("batch", help="fit many configs at once on Dask",
+                       description="Fit every CONFIG (files, folders of *.toml, globs) on a "
+                                   "Dask cluster: an embedded one sized to this machine, or "
+                                   "--scheduler. Each job's outputs go to OUT/<config stem> "
+                                   "(as fitter fit writes them), with OUT/summary.csv and "
+                                   "OUT/summary.png; finished jobs whose config and target "
+                                   "are unchanged are skipped. Exit 0 all converged, 2 bad "
+                                   "command line, 3 some not converged or failed.")
+    b.add_argument("configs", nargs="+", metavar="CONFIG")
+    b.add_argument("--out", metavar="DIR", required=True, help="batch output folder")
+    b.add_argument("--scheduler", metavar="ADDRESS",
+                   help="an existing Dask scheduler (tcp://HOST:PORT) whose workers have "
+                        "fitter installed (default: an embedded LocalCluster)")
+    b.add_argument("--workers", type=int, metavar="N",
+                   help="worker processes of the embedded cluster (default: CPU cores)")
+    b.add_argument("--validate", action=argparse.BooleanOptionalAction, default=None,
+                   help="Mitsuba validation of every fit (default: each config's "
+                        "fit.validate)")
+    b.add_argument("--quiet", action="store_true", help="no progress or log output")
+    b.set_defaults(run=cmd_batch)
 
     return p
 
@@ -487,3 +493,9 @@ def cmd_render(args) -> int:
     write_image(out, img)
     log.print(f"wrote {out}")
     return EXIT_OK
+
+
+def cmd_batch(args) -> int:
+    from .batch import command  # imports Dask: only here, so --help stays fast
+
+    return command(args)

@@ -1,0 +1,229 @@
+"""Running entries on Dask: an embedded ``LocalCluster`` or an existing scheduler.
+
+Each job is one task (``_task.run_entry``). Dask does the scheduling, the
+data movement and the fault handling: a worker process that dies takes its
+task back to the scheduler, which gives it to another worker (up to
+``distributed.scheduler.allowed-failures`` deaths, then the job is an error
+row). On Ctrl-C the tasks not yet finished are cancelled, the embedded
+cluster is closed (its processes end) and the staged folders of the jobs it
+was writing are removed; every finished job's folder is whole (``outdir``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+import uuid
+from typing import Any, Iterable, Sequence
+
+from ._jobs import BatchError, Entry, _one_line, finished, make_entries
+from ._table import write_csv, write_figure
+from ._task import TOPIC, error_row, result_row, run_entry
+
+#: Seconds to wait for an existing scheduler to answer, and for it to have a worker.
+CONNECT_TIMEOUT_S = 5
+WORKER_WAIT_S = 30
+
+
+def run_batch(jobs: Iterable[Any], out: str | None = None, *, scheduler: str | None = None,
+              workers: int | None = None, validate: bool | None = None,
+              progress: bool = False) -> list[dict[str, Any]]:
+    """Fit many jobs on Dask; one row (a dict) per job, in the order given.
+
+    Args:
+        jobs: config paths, ``fitter.config.Job`` objects or ``(target, scene,
+            material)`` tuples (target: an image path or an (H, W, 3) array;
+            the material's defaults are the starting point).
+        out: batch folder; each job's outputs go to ``out/<config stem>`` as
+            ``fitter fit`` writes them, with ``summary.csv`` and ``summary.png``.
+            Jobs whose folder holds a complete result of the same config and
+            target are not run again. None: nothing is written.
+        scheduler: address of an existing Dask scheduler (``tcp://host:port``);
+            None starts a ``LocalCluster`` of ``workers`` processes.
+        workers: processes of the embedded cluster (default: CPU cores).
+        validate: override every job's ``fit.validate`` (None: keep it).
+        progress: show a progress bar on stderr.
+
+    Returns:
+        Rows with the columns of ``summary.csv`` (``fitter.batch._table``):
+        ``config``, ``out``, ``status``, ``resumed``, parameter coordinates,
+        ``stderr:``/``truth:`` columns, ``image_rmse``, ``psnr_db``, ``time_s``,
+        ``error``. A job that could not run has status ``"error"`` and a message.
+
+    Raises:
+        BatchError: ``out`` is not a usable folder, the scheduler does not answer.
+    """
+    if workers is not None and workers < 1:
+        raise BatchError(f"workers = {workers}: expected an integer >= 1")
+    entries = make_entries(jobs, validate)
+    root = _prepare_root(out) if out is not None else None
+    rows: list[dict[str, Any] | None] = [None] * len(entries)
+    todo: list[Entry] = []
+    for e in entries:
+        if e.error is None and root is not None:
+            e = _check_folder(e, root)
+        if e.error is not None:
+            rows[e.index] = error_row(e, e.error)
+            continue
+        done = finished(os.path.join(root, e.name), e.key) if root is not None else None
+        if done is not None:
+            rows[e.index] = result_row(e, done["result"], done["time_s"], resumed=True)
+        else:
+            todo.append(e)
+    if todo:
+        with _client(scheduler, workers, len(todo)) as client:
+            try:
+                for e, row in _run(client, todo, root, progress):
+                    rows[e.index] = row
+            finally:
+                if root is not None:  # temporaries of jobs whose process is gone
+                    _clean(root, todo)
+    if root is not None:
+        write_csv(os.path.join(root, "summary.csv"), rows)
+        write_figure(os.path.join(root, "summary.png"), rows)
+    return rows
+
+
+def _prepare_root(out: str) -> str:
+    root = os.path.abspath(out)
+    if os.path.exists(root) and not os.path.isdir(root):
+        raise BatchError(f"{root}: exists and is not a folder; choose another --out")
+    try:
+        os.makedirs(root, exist_ok=True)
+    except OSError as exc:
+        raise BatchError(f"{root}: cannot create the batch folder ({exc.strerror})") from None
+    if not os.access(root, os.W_OK | os.X_OK):
+        raise BatchError(f"{root}: cannot write in the batch folder (permission denied)")
+    return root
+
+
+def _check_folder(e: Entry, root: str) -> Entry:
+    """The entry, or an error entry if its folder is one fitter may not replace."""
+    import dataclasses
+
+    from ..outdir import OutputError, check_out
+
+    try:
+        check_out(os.path.join(root, e.name))
+    except OutputError as exc:
+        return dataclasses.replace(e, error=_one_line(exc))
+    return e
+
+
+def _clean(root: str, entries: Sequence[Entry]) -> None:
+    from ..outdir import clean_stale
+
+    for e in entries:
+        clean_stale(root, e.name)
+
+
+@contextlib.contextmanager
+def _client(scheduler: str | None, workers: int | None, n_jobs: int):
+    """A ``distributed.Client`` on ``scheduler`` or on an embedded LocalCluster."""
+    from distributed import Client
+
+    if scheduler is not None:
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise BatchError(f"--scheduler {scheduler}: no Dask scheduler answers within "
+                             f"{CONNECT_TIMEOUT_S} s ({_one_line(exc)}); start one with "
+                             "`dask scheduler` and workers with `dask worker ADDRESS`"
+                             ) from None
+        try:
+            try:
+                client.wait_for_workers(1, timeout=WORKER_WAIT_S)
+            except TimeoutError:
+                raise BatchError(f"--scheduler {scheduler}: the scheduler has no workers "
+                                 f"after {WORKER_WAIT_S} s; start some with "
+                                 f"`dask worker {scheduler}`") from None
+            yield client
+        finally:
+            client.close()
+        return
+    from distributed import LocalCluster
+
+    n = min(workers or os.cpu_count() or 1, n_jobs)
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                      host="127.0.0.1", dashboard_address=None,
+                      silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
+        yield client
+
+
+def _run(client, todo: Sequence[Entry], root: str | None, progress: bool):
+    """Submit every entry; yield (entry, row) as jobs finish."""
+    from distributed import as_completed
+
+    started: set[int] = set()
+    client.subscribe_topic(TOPIC, lambda event: started.add(event[1]["start"]))
+    batch = uuid.uuid4().hex[:8]
+    futures = {client.submit(run_entry, e, root, key=f"fitter-{batch}-{e.index}-{e.name}",
+                             pure=False): e for e in todo}
+    counts = {"converged": 0, "not converged": 0, "error": 0}
+    ended: set[int] = set()
+    queue = as_completed(list(futures))
+    try:
+        with _Progress(progress, len(todo)) as bar:
+            while not queue.is_empty():
+                for fut in queue.next_batch(block=False):
+                    e = futures[fut]
+                    row = _row_of(fut, e)
+                    fut.release()
+                    ended.add(e.index)
+                    status = row["status"]
+                    counts["converged" if status == "converged" else
+                           "error" if status == "error" else "not converged"] += 1
+                    yield e, row
+                bar.update(counts, len(started - ended))
+                time.sleep(0.1)
+    finally:
+        client.unsubscribe_topic(TOPIC)
+        client.cancel([f for f in futures if not f.done()])
+
+
+def _row_of(fut, e: Entry) -> dict[str, Any]:
+    from distributed import KilledWorker
+
+    try:
+        return fut.result()
+    except KilledWorker:
+        import dask
+
+        n = dask.config.get("distributed.scheduler.allowed-failures")
+        return error_row(e, f"the worker processes running this job died {n + 1} times "
+                            "(killed, crashed or out of memory); not retried again")
+    except Exception as exc:  # noqa: BLE001 -- e.g. fitter missing on a remote worker
+        return error_row(e, f"{type(exc).__name__}: {_one_line(exc)}")
+
+
+class _Progress:
+    """A rich progress bar on stderr: jobs done, not converged, failed, running."""
+
+    def __init__(self, enabled: bool, total: int):
+        self.enabled, self.total = enabled, total
+
+    def __enter__(self):
+        if self.enabled:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, \
+                TimeElapsedColumn
+
+            self.bar = Progress(TextColumn("fitting"), BarColumn(), MofNCompleteColumn(),
+                                TextColumn("{task.fields[counts]}"), TimeElapsedColumn(),
+                                console=Console(stderr=True), transient=False)
+            self.bar.__enter__()
+            self.task = self.bar.add_task("jobs", total=self.total, counts="")
+        return self
+
+    def update(self, counts: dict[str, int], running: int) -> None:
+        if self.enabled:
+            text = (f"[green]{counts['converged']} converged[/] "
+                    f"[yellow]{counts['not converged']} not converged[/] "
+                    f"[red]{counts['error']} failed[/] {running} running")
+            self.bar.update(self.task, completed=sum(counts.values()), counts=text)
+
+    def __exit__(self, *exc):
+        if self.enabled:
+            self.bar.__exit__(*exc)

@@ -1,0 +1,36 @@
+"""JAX's persistent compilation cache, shared by the commands and batch workers.
+
+``enable_compilation_cache()`` keeps compiled solvers on disk (and, through
+``fitter.fit._cache``, their traces), so a repeated job -- in a later
+``fitter fit`` or on another ``fitter batch`` worker -- skips XLA compilation.
+Importing this module is free; JAX is imported only when the cache is set.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def cache_dir() -> str:
+    """The cache folder: ``$FITTER_CACHE_DIR``, else ``$XDG_CACHE_HOME/fitter/jax``
+    (default ``~/.cache/fitter/jax``); ``""`` when ``FITTER_CACHE_DIR=""`` turns it off."""
+    folder = os.environ.get("FITTER_CACHE_DIR")
+    if folder is None:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        folder = os.path.join(base, "fitter", "jax")
+    return folder
+
+
+def enable_compilation_cache() -> None:
+    """Point JAX's persistent compilation cache at ``cache_dir()`` (nothing if off).
+
+    Set only by code that compiles (after its inputs are checked): the CLI's
+    ``fit`` and ``render``, and each ``fitter batch`` job on its worker.
+    """
+    folder = cache_dir()
+    if not folder:
+        return
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
