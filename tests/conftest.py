@@ -1,4 +1,4 @@
-"""Shared test set-up: float64 JAX, a reproducible hypothesis profile, quadrature.
+"""Shared test set-up: float64 JAX with strict dtype promotion, a reproducible hypothesis profile, quadrature.
 
 The hemisphere / sphere quadrature here is the one every energy test uses:
 Gauss-Legendre in the polar angle theta (measured from an axis) and the
@@ -15,6 +15,8 @@ import pytest
 from hypothesis import HealthCheck, settings
 
 jax.config.update("jax_enable_x64", True)
+# As optimistix's own suite: no silent dtype promotion (a float32 fit stays float32).
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 settings.register_profile(
     "ci", derandomize=True, deadline=None, print_blob=True,
