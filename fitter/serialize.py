@@ -16,7 +16,7 @@ Layout::
     [scene.sphere]     center, radius
     [[scene.lights]]   type = "point" (position, intensity)
                        | "directional" (direction, irradiance)
-    [scene.environment] type = "black" | "constant" (radiance)
+    [scene.environment] type = "black" | "constant" (radiance, scale)
                        | "envmap" (file, scale)
     [material]         lobes; tables truth, init, fixed ("lobe.param" = value;
                        lobe options such as "torrance_sparrow.geometry" go in fixed)
@@ -223,6 +223,8 @@ def _environment_to_dict(env: Environment) -> dict:
     out: dict[str, Any] = {"type": env.type}
     if env.type == "constant":
         out["radiance"] = list(env.radiance)
+        if env.scale != 1.0:
+            out["scale"] = env.scale
     elif env.type == "envmap":
         out.update(file=env.file, scale=env.scale)
     return out
@@ -235,9 +237,10 @@ def _environment_from_dict(r: Reader, tbl: dict, base_dir: str) -> Environment:
         r.table(tbl, where, {"type"})
         return Environment()
     if kind == "constant":
-        r.table(tbl, where, {"type", "radiance"})
+        r.table(tbl, where, {"type", "radiance", "scale"})
         r.require(tbl, where, ("radiance",))
-        return Environment(type="constant", radiance=r.vec3(tbl["radiance"], f"{where}.radiance"))
+        return Environment(type="constant", radiance=r.vec3(tbl["radiance"], f"{where}.radiance"),
+                           scale=r.number(tbl.get("scale", 1.0), f"{where}.scale", lo=0.0))
     r.table(tbl, where, {"type", "file", "scale"})
     r.require(tbl, where, ("file",))
     file = resolve_path(r.string(tbl["file"], f"{where}.file"), base_dir)
