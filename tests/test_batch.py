@@ -1,0 +1,213 @@
+"""``fitter batch`` / ``fitter.batch.run_batch`` on Dask: results, faults, resume.
+
+Tiny jobs (24x24, 2x2 supersampling, forward-model targets) on small clusters
+bound to 127.0.0.1: an embedded LocalCluster, an external ``dask scheduler``
+with two ``dask worker`` processes, a worker killed while it fits.
+"""
+
+from __future__ import annotations
+
+import copy
+import glob
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import fitter
+from fitter import cli, imageio
+from fitter.batch import BatchError, expand_configs, run_batch
+from fitter.batch._table import read_csv
+from fitter.config import dumps_toml, load_config
+from fitter.outdir import MARKER
+from small_case import SMALL
+
+distributed = pytest.importorskip("distributed")
+
+
+def _tiny(m: float) -> dict:
+    d = copy.deepcopy(SMALL)
+    d["scene"]["width"] = d["scene"]["height"] = 24
+    d["material"]["truth"]["torrance_sparrow.m"] = m
+    return d
+
+
+def _write(folder, name: str, data: dict) -> str:
+    """A config ``folder/name.toml`` and its forward-model target ``folder/name.exr``."""
+    os.makedirs(folder, exist_ok=True)
+    data = copy.deepcopy(data)
+    data["fit"]["target"] = f"{name}.exr"
+    path = os.path.join(folder, f"{name}.toml")
+    with open(path, "w") as fh:
+        fh.write(dumps_toml(data))
+    job = load_config(path)
+    img = np.asarray(fitter.render(job.material.full_params({**job.fixed, **job.truth}),
+                                   job.scene, job.material))
+    imageio.write_image(os.path.join(folder, f"{name}.exr"), img)
+    return path
+
+
+@pytest.fixture(scope="module")
+def cases(tmp_path_factory):
+    root = tmp_path_factory.mktemp("batch_cases")
+    paths = [_write(root, f"case{i}", _tiny(m)) for i, m in enumerate([0.15, 0.25])]
+    bad = root / "bad.toml"
+    bad.write_text("[scene]\nwidth = -1\n")
+    return paths, str(bad)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _temporaries(folder) -> list[str]:
+    return [n for n in os.listdir(folder) if ".tmp-" in n]
+
+
+def test_configs_from_folders_and_globs_and_shared_stems_get_their_own_folders(tmp_path):
+    for sub in ("a", "b"):
+        (tmp_path / sub).mkdir()
+        (tmp_path / sub / "x.toml").write_text("")
+    (tmp_path / "a" / "y.toml").write_text("")
+    found = expand_configs([str(tmp_path / "a"), str(tmp_path / "*" / "x.toml")])
+    assert [os.path.relpath(p, tmp_path) for p in found] == ["a/x.toml", "a/y.toml", "b/x.toml"]
+    with pytest.raises(BatchError, match="no config matches"):
+        expand_configs([str(tmp_path / "nothing*.toml")])
+    from fitter.batch._jobs import make_entries
+
+    names = [e.name for e in make_entries(found, None)]  # all three fail to load: still named
+    assert names[1] == "y" and names[0] != names[2] and all(n.startswith("x-") for n in
+                                                           (names[0], names[2]))
+
+
+def test_batch_on_a_local_cluster_writes_fit_folders_summary_and_a_bad_config_row(
+        cases, tmp_path, capsys):
+    paths, bad = cases
+    out = tmp_path / "batch"
+    rc = cli.main(["batch", *paths, bad, "--out", str(out), "--workers", "2", "--quiet"])
+    assert rc == 3  # the bad config: not every job converged
+    rows = read_csv(out / "summary.csv")
+    assert [r["config"] for r in rows] == [*paths, bad]
+    assert [r["status"] for r in rows] == ["converged", "converged", "error"]
+    assert "scene.width" in rows[2]["error"] and bad in rows[2]["error"]
+    for r, m in zip(rows[:2], [0.15, 0.25]):
+        assert abs(float(r["torrance_sparrow.m"]) - m) < 1e-6
+        assert float(r["stderr:torrance_sparrow.m"]) >= 0 and r["psnr_db"] == ""
+        assert float(r["truth:torrance_sparrow.m"]) == m and float(r["image_rmse"]) < 1e-6
+        folder = out / r["out"]
+        assert {"result.json", "fit.exr", "residual.exr", "report.png", "config.toml",
+                MARKER} <= set(os.listdir(folder))
+    assert (out / "summary.png").stat().st_size > 0 and not _temporaries(out)
+
+    # the same numbers as one `fitter fit` of that config
+    single = tmp_path / "single"
+    assert cli.main(["fit", paths[0], "--out", str(single), "--no-validate", "--quiet"]) == 0
+    one = json.loads((single / "result.json").read_text())
+    two = json.loads((out / rows[0]["out"] / "result.json").read_text())
+    for key, value in one["params"].items():
+        if not isinstance(value, str):
+            np.testing.assert_allclose(two["params"][key], value, rtol=1e-6)
+
+
+def test_resume_skips_finished_jobs_and_reruns_a_changed_config(tmp_path):
+    a = _write(tmp_path / "cfg", "a", _tiny(0.2))
+    b = _write(tmp_path / "cfg", "b", _tiny(0.3))
+    out = str(tmp_path / "batch")
+    first = run_batch([a, b], out, workers=1)
+    assert [r["status"] for r in first] == ["converged"] * 2
+    assert not any(r["resumed"] for r in first)
+    t0 = time.perf_counter()
+    again = run_batch([a, b], out, workers=1)  # nothing to fit: no cluster is started
+    assert time.perf_counter() - t0 < 5
+    assert [r["resumed"] for r in again] == [True, True]
+    assert again[0]["torrance_sparrow.m"] == first[0]["torrance_sparrow.m"]
+    data = _tiny(0.3)
+    data["material"]["init"]["torrance_sparrow.m"] = 0.35  # b changes: fitted again
+    data["fit"]["target"] = "b.exr"
+    with open(b, "w") as fh:
+        fh.write(dumps_toml(data))
+    third = run_batch([a, b], out, workers=1)
+    assert [r["resumed"] for r in third] == [True, False]
+    assert [r["status"] for r in third] == ["converged"] * 2
+
+
+def test_unreachable_scheduler_is_exit_2_in_a_few_seconds(cases, tmp_path, capsys):
+    paths, _ = cases
+    t0 = time.perf_counter()
+    rc = cli.main(["batch", paths[0], "--out", str(tmp_path / "o"),
+                   "--scheduler", f"tcp://127.0.0.1:{_free_port()}"])
+    assert rc == 2 and time.perf_counter() - t0 < 10
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("fitter: error: --scheduler tcp://127.0.0.1:") and "\n" not in err
+    assert not (tmp_path / "o" / "case0").exists()
+
+
+def test_batch_on_an_external_dask_scheduler_and_two_dask_workers(cases, tmp_path):
+    paths, _ = cases
+    sched_file = tmp_path / "scheduler.json"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    dask = [sys.executable, "-m", "dask"]
+    procs = [subprocess.Popen([*dask, "scheduler", "--host", "127.0.0.1", "--port", "0",
+                               "--no-dashboard", "--scheduler-file", str(sched_file)],
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 30
+        while not sched_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        address = json.loads(sched_file.read_text())["address"]
+        for _ in range(2):
+            procs.append(subprocess.Popen(
+                [*dask, "worker", address, "--nthreads", "1", "--host", "127.0.0.1",
+                 "--no-dashboard"], env=env, stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL))
+        rows = run_batch(paths, str(tmp_path / "batch"), scheduler=address)
+        assert [r["status"] for r in rows] == ["converged"] * 2
+        assert all((tmp_path / "batch" / r["out"] / "result.json").exists() for r in rows)
+    finally:
+        for p in reversed(procs):  # workers first, then the scheduler
+            p.send_signal(signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def test_a_worker_killed_mid_job_has_its_job_run_again_elsewhere(cases, tmp_path,
+                                                                 monkeypatch):
+    paths, _ = cases
+    monkeypatch.setenv("FITTER_CACHE_DIR", "")  # compile in the job: a slow first fit
+    out = tmp_path / "batch"
+    out.mkdir()
+    killed: list[int] = []
+
+    def kill_the_first_writer():  # a staged folder is named .NAME.tmp-<worker pid>-...
+        deadline = time.monotonic() + 120
+        while not killed and time.monotonic() < deadline:
+            for name in _temporaries(out):
+                pid = int(name.split(".tmp-")[1].split("-")[0])
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+                return
+            time.sleep(0.02)
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1",
+                                  dashboard_address=None, silence_logs=50) as cluster:
+        killer = threading.Thread(target=kill_the_first_writer, daemon=True)
+        killer.start()
+        rows = run_batch(paths[:1], str(out), scheduler=cluster.scheduler_address)
+        killer.join(5)
+    assert killed, "no job folder was being written"
+    assert rows[0]["status"] == "converged", rows[0]["error"]
+    assert (out / rows[0]["out"] / "result.json").exists()
+    assert not _temporaries(out)  # the dead worker's staged folder was removed
