@@ -19,6 +19,7 @@ import os
 import tomllib
 from typing import Any, Mapping
 
+from .fit import LOSSES, SOLVERS
 from .material import Material
 from .scene import Scene, resolve_path
 from .serialize import (  # the table readers and writers; re-exported for cli.py and tests
@@ -35,19 +36,13 @@ from .serialize import (  # the table readers and writers; re-exported for cli.p
     synth_to_dict,
 )
 
-FALLBACK_SOLVERS = ("levenberg_marquardt", "dogleg", "gauss_newton", "bfgs", "adam")
-LOSSES = ("l2", "huber", "cauchy")
 DTYPES = ("float64", "float32")
 MASKS = ("interior", "active")
 
 
 def solvers() -> tuple[str, ...]:
     """Solver names the fit engine accepts (``fitter.fit.SOLVERS``)."""
-    try:
-        from .fit import SOLVERS
-    except ImportError:
-        return FALLBACK_SOLVERS
-    return tuple(SOLVERS)
+    return SOLVERS
 
 
 @dataclasses.dataclass(frozen=True)

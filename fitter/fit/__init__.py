@@ -1,14 +1,30 @@
 """Fit engine: recover material parameters from a target image (optimistix).
 
 ``fitter.fit.fit(target, scene, material, ...) -> FitResult``; the module is
-callable as ``fitter.fit(...)`` too (``fitter._modules``).
+callable as ``fitter.fit(...)`` too (``fitter._modules``). The engine (JAX,
+optimistix) loads on first use; ``SOLVERS`` and ``LOSSES`` do not need it.
 """
 
-from .._modules import make_callable
-from ._drivers import fit as fit, fit_batch as fit_batch
-from ._problem import LOSSES as LOSSES
-from ._setup import FitError as FitError, select_pixels as select_pixels
-from ._solvers import SOLVERS as SOLVERS
-from .result import FitResult as FitResult
+import importlib as _importlib
 
-make_callable(__name__, fit)
+from .._modules import make_callable
+from ._names import LOSSES as LOSSES, SOLVERS as SOLVERS
+
+#: Public name -> module that defines it.
+_LAZY = {"fit": "._drivers", "fit_batch": "._drivers", "FitError": "._setup",
+         "select_pixels": "._setup", "FitResult": ".result"}
+
+
+def __getattr__(name):
+    if name not in _LAZY:
+        raise AttributeError(f"module 'fitter.fit' has no attribute {name!r}")
+    value = getattr(_importlib.import_module(_LAZY[name], __name__), name)
+    globals()[name] = value
+    return value
+
+
+def _fit(*args, **kwargs):
+    return __getattr__("fit")(*args, **kwargs)
+
+
+make_callable(__name__, _fit)

@@ -18,6 +18,7 @@ from ..environment import EnvData
 from ..geometry import Geometry
 from ..material import Material
 from ..render import render_active
+from ._names import LOSSES
 
 #: A fitted value within this fraction of its range from a box edge is "at bound".
 AT_BOUND = 1e-4
@@ -99,7 +100,7 @@ def _cauchy_factor(u2):
 _ROBUST_FACTORS = {"huber": _huber_factor, "cauchy": _cauchy_factor}
 
 #: Names accepted by ``fitter.fit(loss=...)``.
-LOSSES = ("l2", *_ROBUST_FACTORS)
+assert ("l2", *_ROBUST_FACTORS) == LOSSES, "fitter.fit._names.LOSSES lists the losses"
 
 
 def user_values(spec: Spec, z, fixed: dict) -> dict:

@@ -9,6 +9,8 @@ import numpy as np
 import optax
 import optimistix as optx
 
+from ._names import SOLVERS
+
 #: Adam's learning rate in the unconstrained coordinates (all O(1)).
 ADAM_LEARNING_RATE = 0.05
 #: Step budget of a solver without its own entry in ``MAX_STEPS``.
@@ -43,7 +45,7 @@ _MAKERS = {
 }
 
 #: Names accepted by ``fitter.fit(solver=...)``.
-SOLVERS = tuple(_MAKERS)
+assert tuple(_MAKERS) == SOLVERS, "fitter.fit._names.SOLVERS lists the solvers"
 
 #: Default step budgets of the solvers that need more than ``DEFAULT_MAX_STEPS``.
 MAX_STEPS = {"adam": 5000, "bfgs": 1000}
