@@ -31,7 +31,8 @@ INIT = {
     "dielectric": {"dielectric.eta": 1.3, "dielectric.attenuation": [0.8, 0.8, 0.8]},
 }
 #: Validation samples per pixel: the envmap cases are noisier in Mitsuba.
-VALIDATE_SPP = {"mirror": 1024, "dielectric": 1024}
+VALIDATE_SPP = {"mirror": 1024, "dielectric": 1024, "env_plastic": 1024,
+                "env_oren_nayar": 1024, "env_phong": 1024, "env_point": 1024}
 
 
 def case_config(name: str) -> dict:

@@ -8,9 +8,9 @@ the job and a ``configs/<name>.toml`` can be written from it. Relative paths
 (the envmap) are relative to the case folder. ``NOTES`` says what each case
 is for. ``fitter.mitsuba.synth.generate_all(root)`` renders them all.
 
-Opaque-lobe cases use a black environment: Mitsuba's environment emitters
-would light those lobes, the project's model does not (see
-``fitter.mitsuba.translate``).
+The ``env_*`` cases light opaque lobes by the HDR probe ``PROBE`` (sun, sky,
+ground, window; ``fitter.mitsuba.synth.make_probe``), rendered by Mitsuba's
+``path`` integrator (MIS, max_depth 2) at ``SPP_ENV`` samples per pixel.
 """
 
 from __future__ import annotations
@@ -28,6 +28,11 @@ _BLACK = {"type": "black"}
 #: The procedural envmap ``synth.make_envmap`` writes at ``data_synthetic/envmap.exr``.
 ENVMAP = "envmap.exr"
 _ENVMAP = {"type": "envmap", "file": "../" + ENVMAP, "scale": 1.0}
+#: The HDR probe ``synth.make_probe`` writes at ``data_synthetic/probe.exr``.
+PROBE = "probe.exr"
+_PROBE = {"type": "envmap", "file": "../" + PROBE, "scale": 1.0}
+#: Glossy lobes under a small sun need many samples (path + MIS).
+SPP_ENV = 2048
 
 #: Samples per pixel: direct lighting converges fast (interior relative noise
 #: ~6e-5 at 1024 spp); the absorbing dielectric's volume sampling is noisier.
@@ -91,6 +96,23 @@ CASES: dict[str, dict] = {
     "extreme_grazing": _case(["lambert", "torrance_sparrow"],
                              {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.3,
                               "torrance_sparrow.eta": 1.5}, fixed=_VGROOVE, lights=_GRAZING),
+    "env_plastic": _case(["lambert", "torrance_sparrow"],
+                         {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.1,
+                          "torrance_sparrow.eta": 1.5}, fixed=_SMITH, lights=[],
+                         environment=_PROBE, spp=SPP_ENV),
+    "env_oren_nayar": _case(["oren_nayar"], {"oren_nayar.rho_d": [0.5, 0.45, 0.4],
+                                             "oren_nayar.sigma": 0.35},
+                            lights=[], environment=_PROBE, spp=SPP_ENV),
+    "env_phong": _case(["lambert", "phong"],
+                       {"lambert.rho_d": [0.3, 0.4, 0.5], "phong.rho_s": [0.4, 0.4, 0.4],
+                        "phong.e": 300.0}, fixed={"phong.normalized": True}, lights=[],
+                       environment=_PROBE, spp=SPP_ENV),
+    "env_point": _case(["lambert", "torrance_sparrow"],
+                       {"lambert.rho_d": [0.2, 0.5, 0.3], "torrance_sparrow.m": 0.25,
+                        "torrance_sparrow.eta": 1.6}, fixed=_SMITH,
+                       lights=[{"type": "point", "position": [-4.0, 1.0, 3.0],
+                                "intensity": [20.0, 20.0, 30.0]}],
+                       environment=_PROBE, spp=SPP_ENV),
 }
 
 NOTES: dict[str, str] = {
@@ -111,4 +133,10 @@ NOTES: dict[str, str] = {
     "extreme_sigma0": "Oren-Nayar at sigma = 0, the edge of its box (equals Lambert).",
     "extreme_grazing": "Light at 90 degrees to the view: half-lit sphere, highlight near "
                        "the limb (V-groove G at grazing angles).",
+    "env_plastic": "Lambert + Torrance-Sparrow (m = 0.1) lit only by the HDR probe "
+                   "(sun, sky, ground, window); Mitsuba path, max_depth 2.",
+    "env_oren_nayar": "Oren-Nayar (sigma = 0.35) lit only by the HDR probe.",
+    "env_phong": "Lambert + normalised Phong (e = 300) lit only by the HDR probe.",
+    "env_point": "Lambert + Torrance-Sparrow (m = 0.25) under the HDR probe plus one point "
+                 "light.",
 }

@@ -38,7 +38,7 @@ def load_environment(env: Environment, base_dir: str | None = None) -> EnvData:
         path = resolve_path(env.file, base_dir)
         img = np.asarray(read_image(path), dtype=np.float64) * env.scale
         return EnvData(jnp.asarray(img), jnp.zeros(3))
-    rad = np.zeros(3) if env.type == "black" else np.asarray(env.radiance, dtype=np.float64)
+    rad = np.zeros(3) if env.type == "black" else np.asarray(env.radiance, dtype=np.float64) * env.scale
     return EnvData(jnp.zeros((1, 1, 3)), jnp.asarray(rad))
 
 

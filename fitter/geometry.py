@@ -39,6 +39,17 @@ class Geometry(NamedTuple):
         light_color: (L, 3) RGB intensity (W/sr) or irradiance (W/m^2).
         background: (P, 3) weighted sum of what missing samples see.
         background_image: (H*W, 3) the image with no sphere.
+        env_index: (S,) int, active-pixel row of each env sample (pixel
+            centres inside the sphere, hitting sub-pixel samples on its
+            silhouette; ``fitter.envlight``); (0,) without environment light.
+        env_cosines: ``Cosines`` of (cell direction, view direction), each
+            (S, N): the sky-stencil cells of each env sample that receive
+            light (N the most any sample has; the others a stand-in).
+        env_color: (S, N, 3) int over the cell of L cos_i dw, times the
+            sample's weight in its pixel (0 for stand-ins).
+
+    The environment's sun cells are extra directional lights (the last rows
+    of the per-light arrays).
     """
 
     pixel_index: np.ndarray
@@ -52,12 +63,22 @@ class Geometry(NamedTuple):
     light_color: np.ndarray
     background: np.ndarray
     background_image: np.ndarray
+    env_index: np.ndarray
+    env_cosines: Cosines
+    env_color: np.ndarray
 
     def subset(self, rows: np.ndarray) -> "Geometry":
         """The geometry of the active pixels ``rows`` only (NumPy arrays)."""
         per_light = lambda a: np.asarray(a)[:, rows]  # noqa: E731
         pick = lambda a: np.asarray(a)[rows]  # noqa: E731
+        inv = np.full(np.asarray(self.hit).shape[0], -1)
+        inv[rows] = np.arange(len(rows))
+        env_rows = inv[np.asarray(self.env_index)]
+        keep = env_rows >= 0
+        env = lambda a: np.asarray(a)[keep]  # noqa: E731
         return self._replace(
+            env_index=env_rows[keep], env_cosines=Cosines(*(env(a) for a in self.env_cosines)),
+            env_color=env(self.env_color),
             pixel_index=pick(self.pixel_index), hit=pick(self.hit),
             position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
             cosines=Cosines(*(per_light(a) for a in self.cosines)),
@@ -79,8 +100,12 @@ def intersect_sphere(o, d, center, radius):
     return np.where(hit & (t > 0), t, np.inf)
 
 
-def light_terms(lights, position):
-    """Unit directions to each light (L, ..., 3), fall-off (L, ...) and colour (L, 3)."""
+def light_terms(lights, position, extra_dirs=(), extra_irradiance=()):
+    """Unit directions to each light (L, ..., 3), fall-off (L, ...) and colour (L, 3).
+
+    ``extra_dirs`` / ``extra_irradiance``: further directional lights, given
+    by the unit direction *towards* them (the environment's sun cells).
+    """
     dirs, falloff, color = [], [], []
     for light in lights:
         if isinstance(light, PointLight):
@@ -99,14 +124,44 @@ def light_terms(lights, position):
             color.append(light.irradiance)
         else:
             raise SceneError(f"unknown light {light!r}")
+    for v, irr in zip(extra_dirs, extra_irradiance):
+        dirs.append(np.broadcast_to(np.asarray(v, dtype=np.float64), position.shape))
+        falloff.append(np.ones(position.shape[:-1]))
+        color.append(irr)
     if not dirs:
         return (np.zeros((0,) + position.shape), np.zeros((0,) + position.shape[:-1]),
                 np.zeros((0, 3)))
     return np.stack(dirs), np.stack(falloff), np.asarray(color, dtype=np.float64)
 
 
-def build_geometry(scene: Scene, env_type: str, env: EnvData) -> Geometry:
-    """Trace the camera rays against the sphere and tabulate the lights."""
+def env_samples(scene: Scene, hit, t, o, d, weight, pixel_index):
+    """Env samples: (row, normal, view, weight) of pixel centres wholly inside the
+    sphere and of every hitting sub-pixel sample of silhouette pixels."""
+    sph = scene.sphere
+    full = hit.all(axis=1)
+    oc, dc = camera_rays(scene.replace(supersampling=1, pixel_rule="midpoint"))
+    oc = oc.reshape(-1, 3)[pixel_index[full]]
+    dc = dc.reshape(-1, 3)[pixel_index[full]]
+    tc = intersect_sphere(oc, dc, sph.center, sph.radius)
+    tc = np.where(np.isfinite(tc), tc, 0.0)  # a centre ray between Gauss nodes: tangent
+    rows_c = np.nonzero(full)[0]
+    edge_p, edge_k = np.nonzero(hit & ~full[:, None])
+    rows = np.concatenate([rows_c, edge_p])
+    pos = np.concatenate([oc + tc[:, None] * dc, o[edge_p, edge_k] + t[edge_p, edge_k, None]
+                          * d[edge_p, edge_k]])
+    ray = np.concatenate([dc, d[edge_p, edge_k]])
+    normal = (pos - np.asarray(sph.center)) / sph.radius
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    wts = np.concatenate([np.ones(rows_c.size), weight[edge_k]])
+    return rows, normal, -ray, wts
+
+
+def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> Geometry:
+    """Trace the camera rays against the sphere and tabulate the lights.
+
+    ``lighting``: the environment as light (``fitter.envlight.EnvLights``) or
+    None (the opaque lobes see the point/directional lights only).
+    """
     sph = scene.sphere
     if not sph.radius > 0:
         raise SceneError(f"sphere.radius = {sph.radius} must be > 0")
@@ -139,11 +194,31 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData) -> Geometry:
     miss_a = miss_rad.reshape(h * w, k2, 3)[pixel_index]
     background = np.einsum("pkc,k->pc", np.where(hit[..., None], 0.0, miss_a), weight)
 
-    light_dir, falloff, color = light_terms(scene.lights, pos)
+    sun = (lighting.sun_dir, lighting.sun_irradiance) if lighting is not None else ()
+    light_dir, falloff, color = light_terms(scene.lights, pos, *sun)
     cos = Cosines(*(np.asarray(a) for a in cosines(normal, light_dir, -d_a)))
     lit = hit & (cos.cos_i > 0) & (cos.cos_o > 0)
     stand_in = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
     cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, stand_in)))
     light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
+    if lighting is not None:
+        from .envlight import sky_stencil
+
+        t_h = np.where(hit, t.reshape(h * w, k2)[pixel_index], 0.0)
+        rows, e_n, e_v, e_w = env_samples(scene, hit, t_h, o_a, d_a, weight, pixel_index)
+        ok = np.sum(e_n * e_v, -1) > 0
+        rows, e_n, e_v, e_w = rows[ok], e_n[ok], e_v[ok], e_w[ok]
+        e_dir, e_c = sky_stencil(lighting.sky, e_n, e_v)
+        e_c *= e_w[:, None, None]
+        # Keep only the cells that receive light: lit ones first, as many as the most any has.
+        lit = np.any(e_c > 0, axis=-1)
+        order = np.argsort(~lit, axis=1, kind="stable")[:, :max(int(lit.sum(1).max()), 1)]
+        e_dir = np.take_along_axis(e_dir, order[..., None], 1)
+        e_c = np.take_along_axis(e_c, order[..., None], 1)
+        e_cos = Cosines(*cosines(np.broadcast_to(e_n[:, None], e_dir.shape), e_dir,
+                                 np.broadcast_to(e_v[:, None], e_dir.shape)))
+    else:
+        rows, e_c = np.zeros(0, np.int64), np.zeros((0, 0, 3))
+        e_cos = Cosines(*(np.zeros((0, 0)),) * 6)
     return Geometry(pixel_index, hit, weight, pos, normal, d_a, cos, light_weight, color,
-                    background, background_image)
+                    background, background_image, rows, e_cos, e_c)

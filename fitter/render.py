@@ -10,7 +10,10 @@ has are looped over, and refraction is only traced for a dielectric.
 Pixel value = quadrature over the k*k sub-pixel samples of the radiance
 L = sum_lights sum_brdf_lobes f(wi, wo) E_light cos_i  +  sum_specular L_lobe,
 with cos_i, cos_o > 0 required for the light term (a convex sphere shadows
-itself only through its own horizon).
+itself only through its own horizon). A constant/envmap environment lights
+the brdf lobes too (as Mitsuba's emitters do): its sun is a set of extra
+directional lights, the rest a per-sample stencil of cells
+(``fitter.envlight``), summed per pixel.
 """
 
 from __future__ import annotations
@@ -32,13 +35,17 @@ from .scene import Scene
 
 
 def complete_params(material: Material, params: Mapping[str, Any], dtype=jnp.float64):
-    """Given parameters (may be JAX tracers) plus defaults, each of its lobe's shape."""
+    """Given parameters (may be JAX tracers) plus defaults, each of its lobe's shape.
+
+    Concrete values are checked by ``Material.full_params`` (the config's
+    check: key, size, finite, inside the lobe's box; ``MaterialError``
+    naming the key); a tracer (``jax.grad``/``jit`` through the renderer)
+    only by its shape, as its value is not known here.
+    """
     specs = material.param_specs()
-    options = material.option_keys()
-    for key in params:
-        if key not in specs and key not in options:
-            raise MaterialError(f"unknown parameter {key!r} for lobes {list(material.lobes)}; "
-                                f"known: {', '.join(specs)}")
+    material.full_params({
+        k: (np.full(np.shape(v), specs[k].default) if isinstance(v, jax.core.Tracer)
+            and k in specs else v) for k, v in params.items()})
     out = {}
     for key, spec in specs.items():
         value = params.get(key, spec.default)
@@ -115,6 +122,30 @@ def _brdf_unit(lobe, p, opts, geo: Geometry):
                                 value_and_jac=unit_and_jac if lobe.shape_grad else None)
 
 
+def _env_unit(lobe, p, opts, geo: Geometry):
+    """Sum over the sky stencil of shape * (L cos dw) per pixel: (P, 3)."""
+
+    def unit(theta, cos, color):  # per env sample (S, 3)
+        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)
+        return jnp.einsum("sn,snc->sc", g, color)
+
+    def unit_and_jac(theta, cos, color):
+        q = unflatten(theta)
+        g, dg = lobe.shape_grad(q, opts, cos)
+        out = jnp.einsum("tsn,snc->tsc", jnp.stack([g] + [dg[k] for k in q]), color)
+        return out[0], jnp.moveaxis(out[1:], 0, -1)
+
+    theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
+    args = (geo.env_cosines, geo.env_color)
+    if theta is None:
+        per_sample = unit(None, *args)
+    else:
+        per_sample = _with_local_jacobian(
+            unit, theta, *args, value_and_jac=unit_and_jac if lobe.shape_grad else None)
+    out = jnp.zeros((geo.background.shape[0], 3), per_sample.dtype)
+    return out.at[geo.env_index].add(per_sample)  # env samples -> their pixels
+
+
 def _specular(lobe, p, opts, geo: Geometry, env: EnvData, sphere, env_type):
     theta, unflatten = _param_vector(lobe, p)
 
@@ -142,6 +173,8 @@ def render_active(params, geo: Geometry, env: EnvData, sphere, *, material, env_
         if lobe.kind == "brdf":
             if geo.light_weight.shape[0]:
                 value = value + p[lobe.scale] * _brdf_unit(lobe, p, opts, geo)
+            if geo.env_color.shape[0] and geo.env_color.shape[1]:
+                value = value + p[lobe.scale] * _env_unit(lobe, p, opts, geo)
         else:
             value = value + _specular(lobe, p, opts, geo, env, sphere, env_type)
     return value
@@ -162,7 +195,8 @@ class Renderer:
         self.scene, self.material, self.dtype = scene, material, dtype
         self.env_type = scene.environment.type
         self.geometry, self.env, self.sphere = _prepare(
-            scene, jnp.dtype(dtype), os.path.abspath(base_dir) if base_dir else None)
+            scene, jnp.dtype(dtype), os.path.abspath(base_dir) if base_dir else None,
+            env_light=any(lb.kind == "brdf" for lb in material.lobe_objects))
         self.pixel_index = np.asarray(self.geometry.pixel_index)
 
     @property
@@ -186,10 +220,19 @@ class Renderer:
 
 
 @functools.lru_cache(maxsize=8)
-def _prepare(scene: Scene, dtype, base_dir):
-    """Material-independent arrays of a scene (shared by every material)."""
+def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
+    """Material-independent arrays of a scene (shared by every material).
+
+    ``env_light``: tabulate the environment as light (for brdf lobes).
+    """
     env64 = load_environment(scene.environment, base_dir)
-    geo = build_geometry(scene, scene.environment.type, env64)
+    lighting = None
+    if env_light:
+        from .envlight import env_lights
+
+        lighting = env_lights(scene.environment.type, np.asarray(env64.image),
+                              np.asarray(env64.constant))
+    geo = build_geometry(scene, scene.environment.type, env64, lighting)
     # float32 renders still get geometry computed in float64, then rounded.
     cast = lambda a: jnp.asarray(a, dtype=dtype) if np.asarray(a).dtype.kind == "f" \
         else jnp.asarray(a)  # noqa: E731

@@ -16,7 +16,7 @@ from fitter.imageio import read_image
 from fitter.metrics import compare
 from fitter.mitsuba import _variant
 from fitter.cases import CASES, NOTES
-from fitter.mitsuba.synth import make_envmap, write_case
+from fitter.mitsuba.synth import make_envmap, make_probe, write_case
 from fitter.mitsuba.translate import medium_dict, stratified_spp
 
 SCENE = fitter.Scene(width=24, height=16, supersampling=2,
@@ -67,6 +67,7 @@ def test_write_case_contents(tmp_path):
 @pytest.mark.parametrize("name", list(CASES))
 def test_case_table_is_valid_config(name, tmp_path):
     make_envmap(str(tmp_path / "envmap.exr"))
+    make_probe(str(tmp_path / "probe.exr"))
     case_dir = tmp_path / name
     case_dir.mkdir()
     job = config.job_from_dict(CASES[name], base_dir=str(case_dir))
@@ -92,10 +93,12 @@ def test_shipped_cases_are_present_and_small():
 # ------------------------------------------------------------------ translation
 
 
-def test_opaque_lobe_under_environment_is_refused():
+def test_opaque_lobe_under_environment_is_rendered_by_path():
+    # Issue 11: the environment lights opaque lobes in both renderers (was refused).
     scene = SCENE.replace(environment=fitter.Environment(type="constant", radiance=(1, 1, 1)))
-    with pytest.raises(fm.MitsubaError, match="black environment"):
-        fm.translate.check_translatable(scene, PLASTIC)
+    fm.translate.check_translatable(scene, PLASTIC)
+    integ = fm.translate.integrator_dict(PLASTIC, scene)
+    assert integ["type"] == "path" and integ["max_depth"] == 2
 
 
 def test_dielectric_sum_is_refused():

@@ -47,6 +47,39 @@ def make_envmap(path: str, width: int = 64, height: int = 32) -> None:
     write_image(path, sky, _FIXED_STAMP)
 
 
+#: The HDR probe's sun: unit direction towards it, angular diameter (deg), radiance / sky.
+PROBE_SUN = ((0.45, 0.55, 0.70), 3.0, 300.0)
+
+
+def make_probe(path: str, width: int = 128, height: int = 64) -> None:
+    """Write a small HDR light probe (Mitsuba's lat-long mapping, linear RGB).
+
+    A sky gradient (zenith blue, horizon pale) over a darker ground, a dim
+    warm window (a rectangle left of the camera) and a small bright sun
+    (``PROBE_SUN``: ~3 deg at ~300x the sky radiance near it), each texel the
+    average of 8 x 8 sub-samples so that the sun disk is area-weighted.
+    """
+    s = 8
+    v, u = np.mgrid[0:height * s, 0:width * s].astype(np.float64)
+    u = ((u + 0.5) / s - 0.5 + 0.5) / width  # sub-samples about texel centres (i + 0.5) / W
+    v = np.clip(((v + 0.5) / s - 0.5) / (height - 1), 0.0, 1.0)  # rows at v = j / (H - 1)
+    phi, theta = 2 * np.pi * u, np.pi * v
+    d = np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)], -1)
+    elev = d[..., 1]
+    up = np.clip(elev, 0.0, 1.0)[..., None]
+    sky = (1 - up) * np.array([1.0, 1.0, 1.05]) + up * np.array([0.35, 0.55, 1.0])
+    ground = np.array([0.25, 0.2, 0.15]) * (1.0 + 0.3 * np.sin(3 * phi))[..., None]
+    rad = np.where((elev > 0)[..., None], sky, ground)
+    window = (np.abs(np.arctan2(d[..., 0], -d[..., 2]) + 1.9) < 0.35) & (np.abs(elev - 0.2) < 0.25)
+    rad = np.where(window[..., None], np.array([2.0, 1.7, 1.3]), rad)
+    sun, diam, ratio = PROBE_SUN
+    sun = np.asarray(sun) / np.linalg.norm(sun)
+    disk = d @ sun > np.cos(np.radians(diam / 2))
+    rad = np.where(disk[..., None], ratio * np.array([1.0, 0.95, 0.85]), rad)
+    img = rad.reshape(height, s, width, s, 3).mean((1, 3))
+    write_image(path, img, _FIXED_STAMP)
+
+
 def _env_for_json(scene: Scene, out_dir: str, base_dir: str | None) -> Scene:
     env = scene.environment
     if env.type != "envmap":
@@ -85,7 +118,7 @@ def write_case(out_dir: str, scene: Scene, material: Material, params, *, spp: i
         "truth": truth,
         "mitsuba": {"version": mi.__version__, "variant": used, "spp": stratified_spp(spp),
                     "seed": int(seed), "sampler": "stratified", "rfilter": "box",
-                    "integrator": integrator_dict(material)},
+                    "integrator": integrator_dict(material, scene)},
         **(extra or {}),
     }
     os.makedirs(out_dir, exist_ok=True)
@@ -107,10 +140,11 @@ def generate_all(root: str, names=None, *, variant: str | None = None, log=print
 
     Returns ``{name: render seconds}``.
     """
-    from ..cases import CASES, ENVMAP, NOTES
+    from ..cases import CASES, ENVMAP, NOTES, PROBE
 
     os.makedirs(root, exist_ok=True)
     make_envmap(os.path.join(root, ENVMAP))
+    make_probe(os.path.join(root, PROBE))
     times = {}
     for name in names or CASES:
         spec = CASES[name]

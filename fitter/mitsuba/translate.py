@@ -12,17 +12,18 @@ environment            none (black), ``constant``, ``envmap`` (``scale``)
 lobes                  ``Lobe.mitsuba(p, opts)``; several: ``fitter_sum``
 interior medium        ``Lobe.mitsuba.interior`` (the dielectric's absorption)
 integrator             ``direct`` (1 emitter sample, no BSDF samples) unless a lobe
-                       asks for a depth (``Lobe.mitsuba.max_depth``): ``path``,
-                       or ``volpathmis`` when a lobe has an interior medium
+                       asks for a depth (``Lobe.mitsuba.max_depth``) or an opaque
+                       lobe sees a constant/envmap environment (``path``, MIS,
+                       ``max_depth`` >= 2: exactly direct light on a convex
+                       sphere), or ``volpathmis`` when a lobe has an interior medium
 sampler                ``stratified`` (spp rounded up to a square), fixed seed
 =====================  ==========================================================
 
-Two differences in meaning are refused rather than translated. The project's
-opaque ("brdf") lobes are lit by the point/directional lights only, while a
-Mitsuba constant/envmap emitter would light them too: a material with an
-opaque lobe needs a black environment here. And a transmissive lobe
-(``Lobe.transmissive``) must be alone: Mitsuba would apply the whole sum at
-the internal hits, the project traces the interior with that lobe only.
+The environment lights the opaque ("brdf") lobes in both (``fitter.envlight``
+on the project's side). One difference in meaning is refused rather than
+translated: a transmissive lobe (``Lobe.transmissive``) must be alone:
+Mitsuba would apply the whole sum at the internal hits, the project traces
+the interior with that lobe only.
 """
 
 from __future__ import annotations
@@ -80,9 +81,17 @@ def interior_dict(material: Material, params) -> dict | None:
     return None
 
 
-def integrator_dict(material: Material) -> dict:
+#: Path depth that is exactly direct light on an opaque convex sphere.
+ENV_OPAQUE_DEPTH = 2
+
+
+def integrator_dict(material: Material, scene: Scene | None = None) -> dict:
+    """The integrator; ``scene`` says whether an environment lights opaque lobes."""
     maps = _mappings(material)
     depths = [m.max_depth(opts) for _, m, opts in maps if m.max_depth is not None]
+    if scene is not None and scene.environment.type != "black" and any(
+            lb.kind == "brdf" for lb in material.lobe_objects):
+        depths.append(ENV_OPAQUE_DEPTH)
     if not depths:
         return {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0}
     depth = max(depths)
@@ -100,12 +109,6 @@ def check_translatable(scene: Scene, material: Material) -> None:
         raise MitsubaError(f"the Mitsuba translation supports the transmissive lobe {clear[0]!r} "
                            f"only on its own, not summed with "
                            f"{[n for n in material.lobes if n != clear[0]]}")
-    opaque = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
-    if opaque and scene.environment.type != "black":
-        raise MitsubaError(
-            f"environment.type = {scene.environment.type!r}: Mitsuba's environment emitter would "
-            f"also light the opaque lobe(s) {opaque}, which the project lights with the point/"
-            "directional lights only; use a black environment for these lobes")
 
 
 def _camera(mi, scene: Scene) -> dict:
@@ -134,7 +137,8 @@ def _emitters(scene: Scene, base_dir) -> dict:
             raise MitsubaError(f"unknown light {light!r}")
     env = scene.environment
     if env.type == "constant":
-        out["environment"] = {"type": "constant", "radiance": _rgb(env.radiance)}
+        out["environment"] = {"type": "constant",
+                              "radiance": _rgb([float(c) * env.scale for c in env.radiance])}
     elif env.type == "envmap":
         path = env.file
         if base_dir is not None and not os.path.isabs(path):
@@ -171,5 +175,5 @@ def scene_dict(scene: Scene, material: Material, params, *, spp: int, seed: int,
                       "component_format": "float32"}
     sensor["sampler"] = {"type": "stratified", "sample_count": stratified_spp(spp),
                          "seed": int(seed), "jitter": True}
-    return {"type": "scene", "integrator": integrator_dict(material), "sensor": sensor,
+    return {"type": "scene", "integrator": integrator_dict(material, scene), "sensor": sensor,
             "sphere": sphere, **_emitters(scene, base_dir)}

@@ -1,0 +1,332 @@
+"""The environment as light on opaque lobes: a fixed set of directions per sample.
+
+Mitsuba's ``envmap``/``constant`` emitter lights an opaque sphere with
+L_o(wo) = int f(wi, wo) L(wi) cos_i dwi over the hemisphere (direct light is
+the whole answer: a convex sphere sees no other part of itself). The
+radiance L is the bilinearly interpolated latitude-longitude map
+(``fitter.environment``). It is split in two, both tabulated once per scene
+(material-independent, float64 NumPy):
+
+* **Sun lights.** Texels brighter than ``SUN_RATIO`` x the map's median
+  luminance (at most ``SUN_MAX_TEXELS``) carry their excess over the
+  surrounding sky. The bilinear image of that excess is integrated on
+  half-texel cells (``SUN_SUB`` x ``SUN_SUB`` sub-samples per texel) into
+  directional lights -- irradiance = int L dw over the cell, direction its
+  radiance-weighted centroid -- which the renderer treats exactly like the
+  scene's directional lights (every sub-pixel sample, every lobe).
+* **Sky stencil.** The rest (the map with the sun texels filled in) is
+  integrated per *env sample* over a fixed stencil of ``N`` cells: rings
+  about the sample's mirror direction r = reflect(wo, n), narrow near r
+  (``RING_EDGES``: 0.015 rad first ring) so that sharp lobes (m >= 0.05,
+  Phong e <= 500) are resolved, wide far away where only broad lobes reach.
+  Per cell, ``STENCIL_SUB`` x ``STENCIL_SUB`` sub-cells look up a
+  solid-angle-prefiltered pyramid of the map at their own size, giving
+  c = int_cell L max(cos_i, 0) dw (RGB) and the direction of the cell's
+  cos-weighted luminance centroid (above the horizon by construction). A
+  lobe then contributes scale * sum_cells shape(w_cell, wo) * c: Lambert's is
+  exactly rho/pi x irradiance, every other lobe a quadrature whose error is
+  measured in ``benchmarks/envlight.py``.
+
+Env samples are the pixel centres of pixels wholly on the sphere and every
+hitting sub-pixel sample of silhouette pixels (weighted by its quadrature
+weight): the sky term is smooth across the sphere, while the sun's highlight
+(sharp) gets the scene's full supersampling through the sun lights.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import numpy as np
+
+#: A texel is part of the sun when its luminance exceeds this x the median.
+SUN_RATIO = 20.0
+#: At most this many sun texels (the brightest); the rest stays in the sky.
+SUN_MAX_TEXELS = 64
+#: Sun lights: cells of 1 / SUN_CELL texel, integrated with SUN_SUB sub-samples per texel.
+SUN_CELL = 1
+SUN_SUB = 8
+#: Ring edges (radians from the mirror direction) of the sky stencil.
+RING_EDGES = np.array([0.0, 0.012, 0.027, 0.045, 0.065, 0.09, 0.12, 0.155, 0.195, 0.24, 0.29,
+                       0.35, 0.42, 0.5, 0.6, 0.72, 0.86, 1.03, 1.25, 1.5, 1.8, 2.2, 2.65, np.pi])
+#: Azimuthal cells per ring: about square cells, between these bounds.
+MIN_PHI, MAX_PHI = 6, 16
+_LUM = np.array([0.2126, 0.7152, 0.0722])
+
+
+class EnvLights(NamedTuple):
+    """The environment split for the renderer (see the module docstring).
+
+    Attributes:
+        sun_dir: (Ls, 3) unit directions towards the sun cells.
+        sun_irradiance: (Ls, 3) int L dw of each cell (a directional light's irradiance).
+        sky: ``Pyramid`` of the remaining radiance.
+    """
+
+    sun_dir: np.ndarray
+    sun_irradiance: np.ndarray
+    sky: "Pyramid"
+
+
+# ----------------------------------------------------------------- lat-long maps (NumPy)
+def dir_to_uv(v):
+    """Mitsuba's (u, v') of unit directions (..., 3); see ``fitter.environment``."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    u = np.arctan2(x, -z) / (2.0 * np.pi)
+    return u - np.floor(u), np.arctan2(np.hypot(x, z), y) / np.pi
+
+
+def uv_to_dir(u, v):
+    """Inverse of ``dir_to_uv``: u in [0, 1), v' in [0, 1] -> unit directions (..., 3)."""
+    phi, theta = 2.0 * np.pi * u, np.pi * v
+    s = np.sin(theta)
+    return np.stack([s * np.sin(phi), np.cos(theta), -s * np.cos(phi)], -1)
+
+
+def bilinear(img, u, v):
+    """Mitsuba's bilinear lookup of a (H, W, 3) lat-long image at (u, v')."""
+    h, w = img.shape[:2]
+    fx = u * w - 0.5
+    fy = v * (h - 1)
+    x0 = np.floor(fx)
+    y0 = np.clip(np.floor(fy), 0, h - 2)
+    wx, wy = (fx - x0)[..., None], np.clip(fy - y0, 0.0, 1.0)[..., None]
+    x0i = x0.astype(np.int64) % w
+    x1i = (x0i + 1) % w
+    y0i = y0.astype(np.int64) * w
+    flat = img.reshape(-1, img.shape[-1])
+    take = lambda i: np.take(flat, i, axis=0)  # noqa: E731  (faster than 2-D fancy indexing)
+    top = take(y0i + x0i) * (1 - wx) + take(y0i + x1i) * wx
+    bot = take(y0i + w + x0i) * (1 - wx) + take(y0i + w + x1i) * wx
+    return top * (1 - wy) + bot * wy
+
+
+class Pyramid:
+    """Solid-angle-prefiltered levels of a lat-long map, each in Mitsuba's layout.
+
+    Level l (W / 2^l columns, rows at the poles) holds the sin-theta-weighted
+    average of the level-0 bilinear radiance over its texel's footprint, so a
+    lookup at angular size s averages the map over about s.
+    """
+
+    def __init__(self, img: np.ndarray):
+        img = np.asarray(img, dtype=np.float64)
+        self.levels = [img]
+        h, w = img.shape[:2]
+        self.texel = 2.0 * np.pi / w  # level-0 angular texel size
+        while w >= 8 and h >= 5:
+            w, h = w // 2, (h - 1) // 2 + 1
+            self.levels.append(self._average(img, h, w))
+
+    @staticmethod
+    def _average(img, h, w, sub=8):
+        off = (np.arange(sub) + 0.5) / sub - 0.5
+        u = ((np.arange(w)[:, None] + 0.5 + off[None]) / w).reshape(-1)  # (w*sub,)
+        v = ((np.arange(h)[:, None] + off[None]) / (h - 1)).reshape(-1)  # (h*sub,)
+        inside = (v >= 0) & (v <= 1)
+        v = np.clip(v, 0.0, 1.0)
+        uu, vv = np.meshgrid(u, v)
+        rad = bilinear(img, uu, vv)
+        wt = (np.sin(np.pi * vv) + 1e-9) * inside[:, None]
+        num = (rad * wt[..., None]).reshape(h, sub, w, sub, 3).sum((1, 3))
+        den = wt.reshape(h, sub, w, sub).sum((1, 3))
+        return num / den[..., None]
+
+    def lookup(self, dirs, size):
+        """Radiance (..., 3) along ``dirs`` averaged over an angular size ``size`` (...)."""
+        u, v = dir_to_uv(dirs)
+        lev = np.clip(np.log2(np.maximum(size, 1e-12) / self.texel), 0, len(self.levels) - 1)
+        lo = np.floor(lev).astype(np.int64)
+        out = np.zeros(dirs.shape)
+        for i, img in enumerate(self.levels):
+            wgt = np.where(lo == i, 1.0 - (lev - lo), 0.0) + np.where(lo + 1 == i, lev - lo, 0.0)
+            sel = wgt > 0
+            if sel.any():
+                out[sel] += wgt[sel][:, None] * bilinear(img, u[sel], v[sel])
+        return out
+
+
+# ----------------------------------------------------------------------------- the sun
+def split_sun(img: np.ndarray):
+    """(sun_dir (Ls, 3), sun_irradiance (Ls, 3), sky image): the map = sky + sun excess."""
+    img = np.asarray(img, dtype=np.float64)
+    h, w = img.shape[:2]
+    lum = img @ _LUM
+    thresh = SUN_RATIO * max(float(np.median(lum)), 1e-12)
+    order = np.argsort(lum, axis=None)[::-1][:SUN_MAX_TEXELS]
+    order = order[lum.reshape(-1)[order] > thresh]
+    if order.size == 0 or h < 2:
+        return np.zeros((0, 3)), np.zeros((0, 3)), img
+    mask = np.zeros(h * w, bool)
+    mask[order] = True
+    mask = mask.reshape(h, w)
+    sky = img.copy()
+    for r, c in zip(*np.nonzero(mask)):  # fill with the mean of the non-sun neighbours
+        rs = np.clip(np.arange(r - 1, r + 2), 0, h - 1)
+        cs = np.arange(c - 1, c + 2) % w
+        nb = [(i, j) for i in rs for j in cs if not mask[i, j]]
+        sky[r, c] = np.mean([img[i, j] for i, j in nb], axis=0) if nb else 0.0
+    excess = img - sky
+    # Fine lattice (SUN_SUB per texel) over each sun texel's bilinear support.
+    rows, cols = np.nonzero(mask)
+    k = SUN_SUB
+    fine = set()
+    for r, c in zip(rows, cols):
+        for fr in range((r - 1) * k, (r + 1) * k):
+            if 0 <= fr < (h - 1) * k:
+                for fc in range(int((c - 0.5) * k), int((c + 1.5) * k)):
+                    fine.add((fr, fc % (w * k)))
+    fr, fc = np.array(sorted(fine)).T
+    u = (fc + 0.5) / (w * k)
+    v = (fr + 0.5) / ((h - 1) * k)
+    rad = np.maximum(bilinear(excess, u, v), 0.0)
+    d_omega = np.sin(np.pi * v) * (np.pi / ((h - 1) * k)) * (2 * np.pi / (w * k))
+    dirs = uv_to_dir(u, v)
+    e = rad * d_omega[:, None]
+    wl = e @ _LUM
+    cell = (fr // (k // SUN_CELL)) * (w * SUN_CELL) + fc // (k // SUN_CELL)
+    ids, inv = np.unique(cell, return_inverse=True)
+    irr = np.zeros((ids.size, 3))
+    np.add.at(irr, inv, e)
+    cen = np.zeros((ids.size, 3))
+    np.add.at(cen, inv, dirs * wl[:, None])
+    keep = irr @ _LUM > 1e-6 * max(float((irr @ _LUM).sum()), 1e-300)
+    cen = cen[keep]
+    return cen / np.linalg.norm(cen, axis=-1, keepdims=True), irr[keep], sky
+
+
+def env_lights(env_type: str, image: np.ndarray, constant: np.ndarray) -> EnvLights | None:
+    """The split environment, or None for a black one."""
+    if env_type == "envmap":
+        sun_dir, sun_irr, sky = split_sun(image)
+        return EnvLights(sun_dir, sun_irr, Pyramid(sky))
+    rad = np.asarray(constant, dtype=np.float64)
+    if env_type != "constant" or not np.any(rad > 0):
+        return None
+    return EnvLights(np.zeros((0, 3)), np.zeros((0, 3)), Pyramid(np.broadcast_to(rad, (2, 4, 3))))
+
+
+# ---------------------------------------------------------------------- the sky stencil
+#: Cosine tables: angles between n and r (0 .. pi/2) at which Q and the centroids are tabulated.
+N_THETA = 129
+_FINE = 8  # sub-cells per cell side when tabulating
+
+
+def _cells(sub):
+    """Local sub-cell directions (M, 3) about +z, their solid angles, cell ids, cell sizes."""
+    dirs, dw, cell, size = [], [], [], []
+    n = 0
+    for a0, a1 in zip(RING_EDGES[:-1], RING_EDGES[1:]):
+        mid = 0.5 * (a0 + a1)
+        nphi = 1 if a0 == 0 else int(np.clip(round(2 * np.pi * np.sin(mid) / (a1 - a0)),
+                                             MIN_PHI, MAX_PHI))
+        ca = np.cos(np.linspace(a0, a1, sub + 1))
+        for j in range(nphi):
+            for sa in range(sub):
+                c0, c1 = ca[sa], ca[sa + 1]
+                ct = 0.5 * (c0 + c1)  # sub-ring centre in cos (equal-area midpoint)
+                st = np.sqrt(max(1.0 - ct * ct, 0.0))
+                for sp in range(sub):
+                    phi = 2 * np.pi * (j + (sp + 0.5) / sub) / nphi
+                    dirs.append((st * np.cos(phi), st * np.sin(phi), ct))
+                    dw.append((c0 - c1) * 2 * np.pi / nphi / sub)
+                    cell.append(n)
+            size.append(np.sqrt((np.cos(a0) - np.cos(a1)) * 2 * np.pi / nphi))
+            n += 1
+    return np.array(dirs), np.array(dw), np.array(cell), np.array(size)
+
+
+def _tables():
+    """Per cell and angle theta_o between n and r: Q = int_cell max(n.w, 0) dw and the
+    unit direction of the cos-weighted centroid (local frame: r = +z, n in the xz plane)."""
+    d, dw, cell, size = _cells(_FINE)
+    n = size.size
+    th = np.linspace(0.0, np.pi / 2, N_THETA)
+    nl = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)  # (T, 3)
+    w = np.maximum(nl @ d.T, 0.0) * dw  # (T, M)
+    q = np.zeros((N_THETA, n))
+    cen = np.zeros((N_THETA, n, 3))
+    for t in range(N_THETA):
+        q[t] = np.bincount(cell, w[t], n)
+        for i in range(3):
+            cen[t, :, i] = np.bincount(cell, w[t] * d[:, i], n)
+    norm = np.linalg.norm(cen, axis=-1, keepdims=True)
+    cen = np.where(norm > 0, cen / np.where(norm > 0, norm, 1.0), nl[:, None])
+    return q, cen, size
+
+
+_tables = functools.cache(_tables)  # built on first use (~0.1 s), not at import
+
+
+def unlit(scene, material) -> str | None:
+    """Why the material's opaque lobes get no light in ``scene`` (naming the keys), or None."""
+    opaque = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
+    if not opaque:
+        return None
+    power = [getattr(lt, "intensity", None) or getattr(lt, "irradiance", None)
+             for lt in scene.lights]
+    if any(max(p) > 0 for p in power):
+        return None
+    env = scene.environment
+    if env.type == "envmap" and env.scale > 0:
+        return None  # an all-black map is caught when it is read
+    if env.type == "constant" and env.scale > 0 and max(env.radiance) > 0:
+        return None
+    lights = ("scene.lights is empty" if not scene.lights else
+              "every scene.lights[i].intensity/irradiance is zero")
+    env_text = {"black": 'scene.environment.type = "black"',
+                "constant": "scene.environment.radiance (x scale) is zero",
+                "envmap": "scene.environment.scale is zero"}[env.type]
+    return (f"the opaque lobe(s) {opaque} get no light: {lights} and {env_text}; "
+            "add a light or an environment")
+
+
+def _frame(r):
+    """Orthonormal (t, b) completing unit vectors r (..., 3)."""
+    a = np.where(np.abs(r[..., :1]) < 0.9, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
+    t = np.cross(a, r)
+    t /= np.linalg.norm(t, axis=-1, keepdims=True)
+    return t, np.cross(r, t)
+
+
+def sky_stencil(sky: Pyramid, normal, view, chunk: int = 2048):
+    """Per env sample: cell directions (S, N, 3) and c = int L max(cos_i, 0) dw (S, N, 3).
+
+    ``normal`` and ``view`` (S, 3): unit normal and unit direction to the camera
+    (n . view > 0). c = Q(theta_o) x the prefiltered radiance at the cell's
+    cos-weighted centroid, Q tabulated per cell (exact for a constant sky).
+    Cells that receive nothing get the normal as a harmless stand-in direction.
+    """
+    q_tab, cen_tab, cell_size = _tables()
+    s, n = normal.shape[0], cell_size.size
+    out_dir = np.zeros((s, n, 3))
+    out_c = np.zeros((s, n, 3))
+    lev = np.clip(np.log2(cell_size / sky.texel), 0, len(sky.levels) - 1)
+    for lo in range(0, s, chunk):
+        nrm, wo = normal[lo:lo + chunk], view[lo:lo + chunk]
+        co = np.clip(np.sum(nrm * wo, -1), -1.0, 1.0)
+        r = 2.0 * co[:, None] * nrm - wo
+        t = nrm - co[:, None] * r
+        tn = np.linalg.norm(t, axis=-1, keepdims=True)
+        t0, _ = _frame(r)
+        t = np.where(tn > 1e-9, t / np.where(tn > 0, tn, 1.0), t0)
+        b = np.cross(r, t)
+        x = np.arccos(np.clip(co, 0.0, 1.0)) / (np.pi / 2) * (N_THETA - 1)
+        i0 = np.clip(np.floor(x).astype(np.int64), 0, N_THETA - 2)
+        f = (x - i0)[:, None]
+        q = q_tab[i0] * (1 - f) + q_tab[i0 + 1] * f  # (C, N)
+        cl = cen_tab[i0] * (1 - f[..., None]) + cen_tab[i0 + 1] * f[..., None]
+        d = cl[..., :1] * t[:, None] + cl[..., 1:2] * b[:, None] + cl[..., 2:] * r[:, None]
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        u, v = dir_to_uv(d)
+        rad = np.zeros(d.shape)
+        for k, img in enumerate(sky.levels):  # trilinear: cells sit at fixed levels
+            wk = np.clip(1.0 - np.abs(lev - k), 0.0, 1.0)
+            cols = np.nonzero(wk > 0)[0]
+            if cols.size:
+                rad[:, cols] += wk[cols, None] * bilinear(img, u[:, cols], v[:, cols])
+        lit = (q > 0) & (np.sum(d * nrm[:, None], -1) > 0)
+        out_dir[lo:lo + chunk] = np.where(lit[..., None], d, nrm[:, None])
+        out_c[lo:lo + chunk] = np.where(lit[..., None], rad * q[..., None], 0.0)
+    return out_dir, out_c
