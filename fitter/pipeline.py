@@ -157,7 +157,13 @@ def preflight(job: Job) -> None:
     """Refuse, before any work, a job over the limits of ``fitter.limits``."""
     from . import limits
 
+    from .envlight import unlit
+    from .serialize import ConfigError
+
     s = job.scene
+    reason = unlit(s, job.material)
+    if reason:
+        raise ConfigError(f"{job.path}: {reason}")
     limits.check_fit(s.width, s.height, s.supersampling, job.fit.n_starts, where=job.path)
     if job.fit.validate:
         limits.check_spp(job.fit.validate_spp, "fit.validate_spp", where=job.path)
@@ -202,7 +208,16 @@ def validate(job: Job, params: Mapping[str, Any], target: np.ndarray,
     seed = validation_seed(job)
     img = np.asarray(mitsuba.render(job.scene, job.material, full, spp=spp, seed=seed,
                                     base_dir=job.base_dir), dtype=np.float64)
-    mask = ~saturated if saturated is not None and saturated.any() else None
+    from .render import cached_renderer
+
+    # Score the sphere's pixels only (the background is the environment in both).
+    rend = cached_renderer(job.scene, job.material, np.dtype("float64"),
+                           os.path.abspath(job.base_dir) if job.base_dir else None)
+    mask = np.zeros(job.scene.height * job.scene.width, bool)
+    mask[np.asarray(rend.pixel_index)] = True
+    mask = mask.reshape(job.scene.height, job.scene.width)
+    if saturated is not None and saturated.any():
+        mask &= ~saturated
     return Validation(image=img, spp=spp, seed=seed, **metrics.compare(target, img, mask=mask))
 
 
