@@ -18,6 +18,8 @@ import time
 import uuid
 from typing import Any, Iterable, Sequence
 
+from distributed.diagnostics.plugin import WorkerPlugin
+
 from ._jobs import BatchError, Entry, _one_line, finished, make_entries
 from ._table import write_csv, write_figure
 from ._task import TOPIC, error_row, result_row, run_entry
@@ -73,13 +75,13 @@ def run_batch(jobs: Iterable[Any], out: str | None = None, *, scheduler: str | N
         else:
             todo.append(e)
     if todo:
-        with _client(scheduler, workers, len(todo)) as client:
-            try:
+        try:
+            with _client(scheduler, workers, len(todo)) as client:
                 for e, row in _run(client, todo, root, progress):
                     rows[e.index] = row
-            finally:
-                if root is not None:  # temporaries of jobs whose process is gone
-                    _clean(root, todo)
+        finally:  # after the embedded cluster's processes ended (Ctrl-C, a crash)
+            if root is not None:
+                _clean(root, todo)
     if root is not None:
         write_csv(os.path.join(root, "summary.csv"), rows)
         write_figure(os.path.join(root, "summary.png"), rows)
@@ -149,7 +151,21 @@ def _client(scheduler: str | None, workers: int | None, n_jobs: int):
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                       host="127.0.0.1", dashboard_address=None,
                       silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
+        client.register_plugin(_IgnoreInterrupt(), name="fitter-ignore-sigint")
         yield client
+
+
+class _IgnoreInterrupt(WorkerPlugin):
+    """Worker plugin of the embedded cluster: Ctrl-C reaches the worker processes too
+    (one process group), but only the client decides to stop; it then closes the
+    cluster, which ends them. (Without it each prints a KeyboardInterrupt traceback.)"""
+
+    def setup(self, worker):
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _run(client, todo: Sequence[Entry], root: str | None, progress: bool):
