@@ -73,3 +73,30 @@ def string(value) -> str:
     if not isinstance(value, str) or not value:
         raise Problem(f"expected a non-empty string, got {show(value)}")
     return value
+
+
+#: Floating-point types of the forward model and the fit (``fit.dtype``).
+FIT_DTYPES = ("float64", "float32")
+
+#: The rules of the fit engine's scalar options, shared by a config's ``[fit]``
+#: table and the keywords of ``fitter.fit`` / ``fitter.fit_batch``:
+#: name -> (check, its keyword arguments). ``fit_option`` applies one.
+FIT_RULES = {
+    "n_starts": (integer, {"lo": 1}),
+    "max_steps": (integer, {"lo": 1}),
+    "rtol": (number, {"lo": 0.0, "lo_open": True}),
+    "atol": (number, {"lo": 0.0, "lo_open": True}),
+    "noise_sigma": (number, {"lo": 0.0, "lo_open": True}),
+    "saturation": (number, {"lo": 0.0, "lo_open": True}),
+    "loss_scale": (number, {"lo": 0.0, "lo_open": True}),
+    "validate_spp": (integer, {"lo": 1}),
+    "validate": (boolean, {}),
+    "identifiability": (boolean, {}),
+    "dtype": (choice, {"choices": FIT_DTYPES}),
+}
+
+
+def fit_option(name: str, value):
+    """``value`` checked by the rule of fit option ``name`` (``FIT_RULES``)."""
+    check, kwargs = FIT_RULES[name]
+    return check(value, **kwargs)

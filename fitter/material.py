@@ -13,6 +13,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from . import checks
 from .bsdf import LOBES
 from .bsdf.base import Lobe, Param
 from .errors import FitterError
@@ -39,6 +40,9 @@ class Material:
     def make(cls, lobes, options: Mapping[str, Any] | None = None) -> "Material":
         if isinstance(lobes, str):
             lobes = tuple(s.strip() for s in lobes.split("+"))
+        if not isinstance(lobes, (list, tuple)):
+            raise MaterialError("material: expected a Material, a list of lobe names or a "
+                                f"'lambert+phong' string, got {checks.show(lobes)}")
         lobes = tuple(lobes)
         if not lobes:
             raise MaterialError("material.lobes is empty; name at least one of: "
@@ -75,8 +79,10 @@ class Material:
         return lobe_params(dict(self.options), lobe)
 
     def param_specs(self) -> dict[str, Param]:
-        """``{"lobe.param": Param}`` for every parameter of every lobe, in order."""
-        return {f"{n}.{p.name}": p for n in self.lobes for p in LOBES[n].params}
+        """``{"lobe.param": Param}`` for every parameter of every lobe, in order
+        (as the material's options select them: ``Lobe.params_for``)."""
+        return {f"{n}.{p.name}": p for n in self.lobes
+                for p in LOBES[n].params_for(self.options_of(n))}
 
     def option_keys(self) -> set[str]:
         return {k for k, _ in self.options}
@@ -89,6 +95,9 @@ class Material:
         """
         specs = self.param_specs()
         out = {k: _shaped(s.default, s) for k, s in specs.items()}
+        if params is not None and not isinstance(params, Mapping):
+            raise MaterialError("parameters: expected a dict {'lobe.param': value}, got "
+                                + checks.show(params))
         for key, value in (params or {}).items():
             if key in self.option_keys():
                 continue
@@ -97,14 +106,22 @@ class Material:
                     f"unknown parameter {key!r} for lobes {list(self.lobes)}; known: "
                     + ", ".join(specs))
             spec = specs[key]
-            arr = np.asarray(value, dtype=np.float64)
+            try:
+                arr = np.asarray(value)
+            except Exception:  # noqa: BLE001 (whatever a foreign object raises)
+                arr = np.asarray(None)
+            if arr.dtype.kind not in "iuf":  # bool, str, object: not numbers
+                raise MaterialError(f"{key}: expected a number"
+                                    + (" or 3 numbers" if spec.size == 3 else "")
+                                    + f", got {checks.show(value)}")
             if arr.shape not in ((), (1,), spec.shape):
                 raise MaterialError(f"{key}: expected {spec.size} value(s), got {arr.size}")
+            shown = checks.show(arr.item() if arr.size == 1 else arr.tolist())
             arr = _shaped(arr, spec)
             if not np.all(np.isfinite(arr)):
-                raise MaterialError(f"{key} = {value!r} is not finite")
+                raise MaterialError(f"{key} = {shown} is not finite")
             if np.any(arr < spec.lower) or np.any(arr > spec.upper):
-                raise MaterialError(f"{key} = {value!r} is outside its valid range "
+                raise MaterialError(f"{key} = {shown} is outside its valid range "
                                     f"[{spec.lower:g}, {spec.upper:g}]")
             out[key] = arr
         return out

@@ -12,6 +12,7 @@ any of them traces anew. Any problem with the files falls back to tracing.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -41,23 +42,41 @@ def _source_fingerprint() -> str:
 
 def compile_cached(f, args, key: str, options: dict | None = None):
     """``jax.jit(f).lower(*args).compile(options)``, reusing an exported trace if one
-    is on disk. ``options``: XLA compiler options (part of XLA's cache key)."""
+    is on disk. ``options``: XLA compiler options (part of XLA's cache key).
+
+    A file that cannot be read back or no longer fits ``args`` (truncated,
+    corrupt, from an incompatible JAX) is replaced by a fresh export, so only
+    one run pays for tracing again; if that fails too, the fit traces as if
+    there were no cache.
+    """
     folder = jax.config.jax_compilation_cache_dir
     if not folder:
         return jax.jit(f).lower(*args).compile(options)
     digest = hashlib.sha256((key + _source_fingerprint()).encode()).hexdigest()[:32]
     path = os.path.join(folder, f"fitter-{digest}.jaxexport")
     try:
-        if os.path.exists(path):
-            with open(path, "rb") as fh:
-                exported = export.deserialize(bytearray(fh.read()))
-        else:
-            exported = export.export(jax.jit(f))(*args)
-            os.makedirs(folder, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-")
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(exported.serialize())
-            os.replace(tmp, path)
+        with open(path, "rb") as fh:
+            exported = export.deserialize(bytearray(fh.read()))
         return jax.jit(exported.call).lower(*args).compile(options)
-    except Exception:  # a stale or unreadable file must never break a fit
+    except Exception:  # noqa: BLE001 (missing, stale or unreadable: export anew below)
+        pass
+    try:
+        exported = export.export(jax.jit(f))(*args)
+        _store(folder, path, exported.serialize())
+        return jax.jit(exported.call).lower(*args).compile(options)
+    except Exception:  # noqa: BLE001 (a cache problem must never break a fit)
         return jax.jit(f).lower(*args).compile(options)
+
+
+def _store(folder: str, path: str, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (a reader never sees half a file)."""
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise

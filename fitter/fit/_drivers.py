@@ -16,7 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..limits import check_fit
 from ..scene import Scene
+from . import _args
 from ._compile import compiled, jac_res, r_factor
 from ._covariance import residual_variance
 from ._identify import ambiguous, dead_columns, unidentifiable_at
@@ -72,16 +74,20 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         not raised. Raises ``FitError`` / ``MaterialError`` for bad input.
     """
     t_start = time.perf_counter()
-    if n_starts < 1:
-        raise FitError(f"n_starts = {n_starts} must be >= 1")
-    problem = Problem.make(target[None] if np.ndim(target) == 3 else target, scene, material,
+    scene = _args.scene_of(scene)
+    n_starts = _args.option("n_starts", n_starts)
+    identifiability = _args.option("identifiability", identifiability)
+    check_fit(scene.width, scene.height, scene.supersampling, n_starts)
+    target = _args.images(target, "target", scene)
+    if target.shape != (scene.height, scene.width, 3) and target.shape[:1] != (1,):
+        several = "; use fit_batch for several targets" if target.ndim == 4 else ""
+        raise FitError(f"target has shape {target.shape}, expected "
+                       f"{_args.image_shape(scene)}{several}")
+    problem = Problem.make(target[None] if target.ndim == 3 else target, scene, material,
                            init=init, fixed=fixed, bounds=bounds, solver=solver, mask=mask,
                            exclude=exclude, weights=weights, noise_sigma=noise_sigma, loss=loss,
                            loss_scale=loss_scale, saturation=saturation, max_steps=max_steps,
                            rtol=rtol, atol=atol, dtype=dtype, base_dir=base_dir)
-    if problem.targets.shape[0] != 1:
-        raise FitError(f"target has shape {np.shape(target)}, expected "
-                       f"{(scene.height, scene.width, 3)}; use fit_batch for several targets")
     t_compile = 0.0
     if identifiability:
         problem, t_compile = _hold_dead_columns(problem)
@@ -125,9 +131,17 @@ def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
     t_start = time.perf_counter()
     if batch not in ("map", "vmap"):
         raise FitError(f"batch = {batch!r}: expected 'map' or 'vmap'")
-    targets = np.asarray(targets, dtype=np.float64)
-    if targets.ndim != 4:
-        raise FitError(f"targets have shape {targets.shape}, expected (B, H, W, 3)")
+    for name in ("n_starts", "exclude"):
+        if name in kwargs:
+            raise FitError(f"fit_batch takes no {name} (one start per target, one pixel "
+                           "selection for all); fit the targets one by one with fit to use it")
+    scene = _args.scene_of(scene)
+    identifiability = _args.option("identifiability", identifiability)
+    check_fit(scene.width, scene.height, scene.supersampling, 1)
+    targets = _args.images(targets, "targets", scene)
+    if targets.ndim != 4 or len(targets) == 0:
+        raise FitError(f"targets have shape {targets.shape}, expected (B, H, W, 3) with B >= 1 "
+                       f"and (H, W, 3) = {_args.image_shape(scene)}")
     problem = Problem.make(targets, scene, material, **kwargs)
     t_compile = 0.0
     if identifiability:

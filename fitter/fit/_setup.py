@@ -12,9 +12,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import FitterError
 from ..material import Material
 from ..render import Renderer, cached_renderer
+from .. import checks
+from . import _args
+from ._args import FitError as FitError
 from ._noise import estimate_noise
 from ._problem import LOSSES, Block, Data, Spec, z_from_params
 from ._solvers import SOLVERS, default_max_steps
@@ -23,10 +25,6 @@ from ._solvers import SOLVERS, default_max_steps
 #: of the range inside: on the edge the coordinate is saturated and the
 #: Jacobian column vanishes.
 START_MARGIN = 1e-2
-
-
-class FitError(FitterError):
-    """A fit that cannot be set up (message says what to change)."""
 
 
 def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
@@ -79,20 +77,78 @@ def _fitted_geometry(renderer: Renderer, rows: bytes):
         pixel_index=None, background_image=None))
 
 
-def _free_blocks(material: Material, fixed_keys, bounds) -> tuple[Block, ...]:
-    """Free parameters as solver blocks, with their (possibly narrowed) boxes."""
+def _free_blocks(material: Material, fixed_keys, bounds: dict) -> tuple[Block, ...]:
+    """Free parameters as solver blocks, with their (possibly narrowed) boxes.
+
+    Every key of ``bounds`` must be a free parameter, and its ``(lower,
+    upper)`` a pair of numbers inside the parameter's box.
+    """
+    specs = material.param_specs()
+    for key, pair in bounds.items():
+        if key not in specs:
+            raise FitError(f"bounds: unknown parameter {key!r} for lobes "
+                           f"{list(material.lobes)}; known: {', '.join(specs)}")
+        if key in fixed_keys:
+            raise FitError(f"bounds: {key} is fixed, so bounds on it have no effect; remove "
+                           "it from bounds, or fit it (give it in init, not in fixed)")
+        if not isinstance(pair, (tuple, list, np.ndarray)) or len(pair) != 2:
+            raise FitError(f"bounds for {key}: expected (lower, upper), got "
+                           f"{checks.show(pair)}")
+        for v in pair:
+            try:
+                checks.number(v)
+            except checks.Problem as exc:
+                raise FitError(f"bounds for {key}: {exc}") from None
     blocks = []
-    for key, spec in material.param_specs().items():
+    for key, spec in specs.items():
         if key in fixed_keys:
             continue
         lo, hi = spec.lower, spec.upper
-        if bounds and key in bounds:
+        if key in bounds:
             lo, hi = (float(v) for v in bounds[key])
             if not (spec.lower <= lo < hi <= spec.upper):
                 raise FitError(f"bounds for {key} = {(lo, hi)} must satisfy "
                                f"{spec.lower:g} <= lower < upper <= {spec.upper:g}")
         blocks.append(Block(key, spec.size, spec.transform, lo, hi))
     return tuple(blocks)
+
+
+def _all_fixed(material: Material, numeric_fixed: dict) -> FitError:
+    """The error of a fit whose every parameter is fixed, naming what to change."""
+    given = [k for k in material.param_specs() if k in numeric_fixed]
+    by_default = [k for k, s in material.param_specs().items()
+                  if not s.free and k not in numeric_fixed]
+    what = []
+    one = lambda keys: keys[0] if len(keys) == 1 else "one of " + ", ".join(keys)  # noqa: E731
+    if given:
+        what.append(f"remove {one(given)} from fixed (material.fixed in a config)")
+    if by_default:
+        what.append(f"fit {one(by_default)} (fixed by default) by giving it in init "
+                    "(material.init)")
+    return FitError("every parameter is fixed, so there is nothing to fit: "
+                    + ", or ".join(what))
+
+
+def _no_pixels(renderer: Renderer, mask, n_dropped: int, saturation) -> FitError:
+    """The error of a fit without pixels, naming the key or argument to change."""
+    scene = renderer.scene
+    sphere = (f"scene.sphere.center = {list(scene.sphere.center)}, scene.sphere.radius = "
+              f"{scene.sphere.radius:g}")
+    if n_dropped:
+        sat = f", or at/above saturation = {saturation:g}" if saturation is not None else ""
+        return FitError(f"no pixels to fit: every selected pixel of the target is NaN/Inf, in "
+                        f"exclude{sat}; check the target image (fit.target), exclude or "
+                        "saturation (fit.saturation)")
+    if not np.asarray(renderer.geometry.hit).any():
+        return FitError(f"no pixels to fit: the sphere covers no pixel of the "
+                        f"{scene.width}x{scene.height} image ({sphere}); put it in the "
+                        "camera's view (scene.camera.origin, target, fov) or enlarge "
+                        "scene.sphere.radius")
+    if isinstance(mask, str) and mask == "interior":
+        return FitError(f"no pixels to fit: no pixel lies wholly on the sphere ({sphere}; "
+                        "mask = 'interior'); enlarge scene.sphere.radius or the image "
+                        "(scene.width, scene.height), or fit mask = 'active'")
+    return FitError("no pixels to fit: mask selects no pixel the sphere covers; check mask")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -125,25 +181,34 @@ class Problem:
              solver="levenberg_marquardt", mask="interior", exclude=None, weights=None,
              noise_sigma=None, loss="l2", loss_scale=None, saturation=None, max_steps=None,
              rtol=1e-6, atol=1e-8, dtype=jnp.float64, base_dir=None) -> Problem:
-        """Check the arguments of ``fit`` and set up targets (B, H, W, 3)."""
+        """Check the arguments of ``fit`` (``_args``) and set up targets (B, H, W, 3)."""
+        scene = _args.scene_of(scene)
         material = material if isinstance(material, Material) else Material.make(material)
         if solver not in SOLVERS:
             raise FitError(f"unknown solver {solver!r}; known: {', '.join(SOLVERS)}")
         if loss not in LOSSES:
             raise FitError(f"unknown loss {loss!r}; known: {', '.join(LOSSES)}")
-        targets = np.asarray(targets, dtype=np.float64)
+        noise_sigma = _args.optional("noise_sigma", noise_sigma)
+        loss_scale = _args.optional("loss_scale", loss_scale)
+        saturation = _args.optional("saturation", saturation)
+        max_steps = _args.optional("max_steps", max_steps)
+        rtol, atol = _args.option("rtol", rtol), _args.option("atol", atol)
+        dtype = _args.dtype_of(dtype)
+        if base_dir is not None:
+            base_dir = _args.text("base_dir", base_dir)
+        init, fixed = _args.mapping(init, "init"), _args.mapping(fixed, "fixed")
+        bounds = _args.mapping(bounds, "bounds")
+        targets = _args.images(targets, "targets", scene)
         if targets.shape[1:] != (scene.height, scene.width, 3):
             raise FitError(f"target has shape {targets.shape[1:]}, expected "
-                           f"{(scene.height, scene.width, 3)} from the scene")
-        if noise_sigma is not None and not noise_sigma > 0:
-            raise FitError(f"noise_sigma = {noise_sigma} must be > 0")
-        options = {k: v for k, v in {**(init or {}), **(fixed or {})}.items()
-                   if k in material.option_keys()}
+                           f"{_args.image_shape(scene)}")
+        wt = _args.weights_of(weights, scene)
+        options = {k: v for k, v in {**init, **fixed}.items() if k in material.option_keys()}
         if options:
             material = Material.make(material.lobes, {**dict(material.options), **options})
         opt_keys = material.option_keys()
-        numeric_fixed = {k: v for k, v in (fixed or {}).items() if k not in opt_keys}
-        numeric_init = {k: v for k, v in (init or {}).items() if k not in opt_keys}
+        numeric_fixed = {k: v for k, v in fixed.items() if k not in opt_keys}
+        numeric_init = {k: v for k, v in init.items() if k not in opt_keys}
         overlap = set(numeric_fixed) & set(numeric_init)
         if overlap:
             raise FitError(f"{sorted(overlap)} given both as initial and as fixed values")
@@ -152,26 +217,25 @@ class Problem:
                                            if not s.free and k not in numeric_init}
         blocks = _free_blocks(material, fixed_keys, bounds)
         if not blocks:
-            raise FitError("every parameter is fixed: nothing to fit")
+            raise _all_fixed(material, numeric_fixed)
 
-        renderer = cached_renderer(scene, material, jnp.dtype(dtype),
+        renderer = cached_renderer(scene, material, dtype,
                                    os.path.abspath(base_dir) if base_dir else None)
         # Pixels are chosen on the first target; others mark their bad pixels by weight 0.
         rows, n_dropped, _ = select_pixels(renderer, targets[0], mask, exclude, saturation)
         if rows.size == 0:
-            raise FitError("no pixels to fit: the mask selects none, or every selected pixel "
-                           "is NaN/Inf, excluded or saturated")
+            raise _no_pixels(renderer, mask, n_dropped, saturation)
         picked = targets.reshape(len(targets), -1, 3)[:, renderer.pixel_index[rows]]
         usable = np.all(np.isfinite(picked), axis=-1, keepdims=True)
         if saturation is not None:
             usable &= np.all(np.where(np.isfinite(picked), picked, 0) < saturation,
                              axis=-1, keepdims=True)
         w = np.ones(picked.shape)
-        if weights is not None:
-            wt = np.asarray(weights, dtype=np.float64)
-            wt = np.broadcast_to(wt[..., None] if wt.ndim == 2 else wt,
-                                 (scene.height, scene.width, 3))
+        if wt is not None:
             w = w * wt.reshape(-1, 3)[renderer.pixel_index[rows]]
+            if not np.any(w > 0):
+                raise FitError(f"no pixels to fit: weights are 0 on all {rows.size} selected "
+                               "pixels; give the pixels to fit a weight > 0")
         if noise_sigma is not None:
             w = w / noise_sigma
         w = np.where(usable, w, 0.0)
