@@ -81,20 +81,19 @@ def test_synth_and_validate_spp_are_capped(small, tmp_path, capsys):
     assert not (tmp_path / "s").exists()
 
 
-def test_a_scene_with_no_light_ends_failed_with_a_summary_not_a_traceback(tmp_path, capsys):
-    # Every parameter is held (nothing lights the sphere): the run still reports.
+def test_a_scene_with_no_light_is_refused_before_fitting(tmp_path, capsys):
+    # Issue 11: nothing lights the opaque lobes (zero lights, black environment):
+    # a config error (exit 2) naming the keys, before any work (was: fitted, then "failed").
     def dark(data):
         for light in data["scene"]["lights"]:
             light["intensity"] = [0.0, 0.0, 0.0]
     path = _case(tmp_path, dark)
     out = tmp_path / "res"
     code, stdout, err = _run(capsys, "fit", path, "--out", out)
-    assert code == 3, err
+    assert code == 2, err
     assert "Traceback" not in err
-    assert "image RMSE" in stdout and "failed" in stdout
-    result = json.loads((out / "result.json").read_text())
-    assert result["status"] == "failed"
-    assert result["image_rmse"] is not None
+    assert "scene.lights" in err and "scene.environment" in err
+    assert not out.exists()
 
 
 def test_a_full_disk_while_writing_is_one_line_and_keeps_the_old_result(
