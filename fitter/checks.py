@@ -19,8 +19,10 @@ class Problem(ValueError):
 
 
 def show(value) -> str:
-    """``repr(value)``, cut to 60 characters."""
-    text = repr(value)
+    """``repr(value)`` on one line, cut to 60 characters (an array: its shape and dtype)."""
+    if isinstance(value, np.ndarray) and value.size > 3:
+        return f"an array of shape {value.shape} and dtype {value.dtype}"
+    text = " ".join(repr(value).split())
     return text if len(text) <= 60 else text[:57] + "..."
 
 

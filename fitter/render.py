@@ -26,12 +26,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import checks
 from ._modules import make_callable
 from .bsdf.base import SurfaceHit
 from .environment import EnvData, load_environment, lookup
 from .geometry import Geometry, build_geometry
 from .material import Material, MaterialError, lobe_params
-from .scene import Scene
+from .scene import Scene, SceneError
 
 
 def complete_params(material: Material, params: Mapping[str, Any], dtype=jnp.float64):
@@ -254,10 +255,20 @@ def render(params: Mapping[str, Any], scene: Scene, material: Material | None = 
     ``material`` defaults to the lobes named by the keys of ``params`` (string
     and bool values there are lobe options, e.g. ``"torrance_sparrow.geometry":
     "smith"``). Differentiable in the numeric values; the prepared scene is
-    cached, so repeated calls only pay for the BSDF evaluation.
+    cached, so repeated calls only pay for the BSDF evaluation. A concrete
+    value outside its lobe's box (NaN, m <= 0, rho > 1, ...) is a
+    ``MaterialError`` naming the key and the range (``complete_params``); a
+    bad scene a ``SceneError`` naming the field.
     """
+    if not isinstance(params, Mapping):
+        raise MaterialError("params: expected a dict {'lobe.param': value}, got "
+                            + checks.show(params))
+    if not isinstance(scene, Scene):
+        raise SceneError(f"scene: expected a fitter.Scene, got {checks.show(scene)}")
     if material is None:
         material = Material.from_params(params)
+    elif not isinstance(material, Material):
+        material = Material.make(material)
     numeric = {k: v for k, v in params.items() if k not in material.option_keys()}
     base_dir = os.path.abspath(base_dir) if base_dir else None
     return cached_renderer(scene, material, jnp.dtype(dtype), base_dir).image(numeric)

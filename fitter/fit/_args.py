@@ -17,7 +17,7 @@ import numpy as np
 
 from .. import checks
 from ..errors import FitterError
-from ..scene import Scene, check_scene
+from ..scene import Scene, SceneError, check_scene
 
 
 class FitError(FitterError):
@@ -48,7 +48,7 @@ def text(name: str, value) -> str:
 def scene_of(scene) -> Scene:
     """A ``Scene`` every renderer can use (``SceneError`` names the field otherwise)."""
     if not isinstance(scene, Scene):
-        raise FitError(f"scene: expected a fitter.Scene, got {checks.show(scene)}")
+        raise SceneError(f"scene: expected a fitter.Scene, got {checks.show(scene)}")
     check_scene(scene)
     return scene
 
@@ -83,11 +83,13 @@ def images(value, name: str, scene: Scene) -> np.ndarray:
         raise FitError(f"{name}: got the file name {checks.show(value)}; read the image first "
                        "(fitter.imageio.read_image) and pass the array")
     try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+        arr = np.asarray(value)
+    except (TypeError, ValueError):  # ragged nested lists
+        arr = np.asarray(None)
+    if arr.dtype.kind not in "iuf":  # bool, complex, str, object: not radiance values
         raise FitError(f"{name}: expected an array of numbers of shape {image_shape(scene)}, "
-                       f"got {checks.show(value)}") from None
-    return arr
+                       f"got {checks.show(value)}")
+    return arr.astype(np.float64)
 
 
 def weights_of(weights, scene: Scene) -> np.ndarray | None:
@@ -96,10 +98,13 @@ def weights_of(weights, scene: Scene) -> np.ndarray | None:
         return None
     hw = (scene.height, scene.width)
     try:
-        wt = np.asarray(weights, dtype=np.float64)
-    except (TypeError, ValueError):
+        wt = np.asarray(weights)
+    except (TypeError, ValueError):  # ragged nested lists
+        wt = np.asarray(None)
+    if wt.dtype.kind not in "iuf":
         raise FitError(f"weights: expected an array of numbers of shape {hw} or "
-                       f"{hw + (3,)}, got {checks.show(weights)}") from None
+                       f"{hw + (3,)}, got {checks.show(weights)}")
+    wt = wt.astype(np.float64)
     if wt.shape not in (hw, hw + (3,)):
         raise FitError(f"weights has shape {wt.shape}, expected {hw} or {hw + (3,)} "
                        "(scene.height, scene.width[, 3])")

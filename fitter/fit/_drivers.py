@@ -71,7 +71,14 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
 
     Returns:
         A ``FitResult``; failures are reported in ``status``/``message``,
-        not raised. Raises ``FitError`` / ``MaterialError`` for bad input.
+        not raised.
+
+    Raises:
+        FitterError: for bad input, before any work, with a message naming
+            the argument or key (the config's rules, ``_args``): ``FitError``
+            (an argument), ``MaterialError`` (a parameter or lobe),
+            ``SceneError`` (a scene field), ``ResourceError`` (over
+            ``fitter.limits``: starts, supersampling, memory).
     """
     t_start = time.perf_counter()
     scene = _args.scene_of(scene)
@@ -79,7 +86,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     identifiability = _args.option("identifiability", identifiability)
     check_fit(scene.width, scene.height, scene.supersampling, n_starts)
     target = _args.images(target, "target", scene)
-    if target.shape != (scene.height, scene.width, 3) and target.shape[:1] != (1,):
+    if target.shape not in ((scene.height, scene.width, 3), (1, scene.height, scene.width, 3)):
         several = "; use fit_batch for several targets" if target.ndim == 4 else ""
         raise FitError(f"target has shape {target.shape}, expected "
                        f"{_args.image_shape(scene)}{several}")
