@@ -85,34 +85,50 @@ def _with_local_jacobian(fn, theta, *args, value_and_jac=None):
 
 
 def _param_vector(lobe, p, skip=None):
-    """The lobe's parameters (but ``skip``) as a flat vector, and its inverse."""
-    names = [q.name for q in lobe.params if q.name != skip]
-    sizes = [q.size for q in lobe.params if q.name != skip]
+    """The lobe's parameters ``p`` (but ``skip``) as a flat vector, and its inverse."""
+    names = [n for n in p if n != skip]
+    sizes = [int(np.prod(jnp.shape(p[n]))) for n in names]
     theta = jnp.concatenate([jnp.reshape(p[n], (-1,)) for n in names]) if names else None
 
     def unflatten(t):
         out, i = {}, 0
         for n, k in zip(names, sizes):
-            out[n] = t[i] if k == 1 else t[i:i + k]
+            out[n] = t[i] if jnp.ndim(p[n]) == 0 else t[i:i + k]
             i += k
         return out
 
     return theta, unflatten
 
 
+def _columns(g, dg, q):
+    """[g, d g / d theta_0, ...] stacked: one slice per coordinate of theta.
+
+    An RGB parameter of an RGB shape (``Lobe.shape_grad`` gives the diagonal)
+    spreads over three columns, channel j in column j.
+    """
+    cols = [g]
+    for name, v in q.items():
+        d = jnp.broadcast_to(dg[name], g.shape)
+        cols += [d] if jnp.ndim(v) == 0 else [d * jnp.eye(3, dtype=g.dtype)[j] for j in range(3)]
+    return jnp.stack(cols)
+
+
 def _brdf_unit(lobe, p, opts, geo: Geometry):
     """Sum over lights and samples of shape * weight * light colour: (P, 3)."""
 
+    def light_sum(g, weight, color, rgb):  # g: ([T,] L, P, K[, 3]); rgb: colour axis
+        return jnp.einsum("...lpkc,lpk,lc->...pc" if rgb else "...lpk,lpk,lc->...pc",
+                          g, weight, color)
+
     def unit(theta, cos, weight, color):
         g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (L, P, K)
-        return jnp.einsum("lpk,lpk,lc->pc", g, weight, color)
+        return light_sum(g, weight, color, g.ndim > weight.ndim)
 
     def unit_and_jac(theta, cos, weight, color):
         q = unflatten(theta)
         g, dg = lobe.shape_grad(q, opts, cos)
         # One (n + 1)-stack, one contraction: value and every column at once.
-        s = jnp.stack([g] + [dg[name] for name in q]) * weight
-        out = jnp.einsum("tlpk,lc->tpc", s, color)
+        out = light_sum(_columns(g, dg, q), weight, color, g.ndim > weight.ndim)
         return out[0], jnp.moveaxis(out[1:], 0, -1)
 
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
@@ -128,12 +144,13 @@ def _env_unit(lobe, p, opts, geo: Geometry):
 
     def unit(theta, cos, color):  # per env sample (S, 3)
         g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)
-        return jnp.einsum("sn,snc->sc", g, color)
+        return jnp.einsum("snc,snc->sc" if g.ndim == color.ndim else "sn,snc->sc", g, color)
 
     def unit_and_jac(theta, cos, color):
         q = unflatten(theta)
         g, dg = lobe.shape_grad(q, opts, cos)
-        out = jnp.einsum("tsn,snc->tsc", jnp.stack([g] + [dg[k] for k in q]), color)
+        out = jnp.einsum("tsnc,snc->tsc" if g.ndim == color.ndim else "tsn,snc->tsc",
+                         _columns(g, dg, q), color)  # an RGB shape has a colour axis
         return out[0], jnp.moveaxis(out[1:], 0, -1)
 
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
