@@ -79,8 +79,10 @@ class Material:
         return lobe_params(dict(self.options), lobe)
 
     def param_specs(self) -> dict[str, Param]:
-        """``{"lobe.param": Param}`` for every parameter of every lobe, in order."""
-        return {f"{n}.{p.name}": p for n in self.lobes for p in LOBES[n].params}
+        """``{"lobe.param": Param}`` for every parameter of every lobe, in order
+        (as the material's options select them: ``Lobe.params_for``)."""
+        return {f"{n}.{p.name}": p for n in self.lobes
+                for p in LOBES[n].params_for(self.options_of(n))}
 
     def option_keys(self) -> set[str]:
         return {k for k, _ in self.options}

@@ -13,7 +13,11 @@ A lobe is one of two kinds:
   direction pair only (every lecture BRDF is isotropic). The split lets the
   renderer average shape * irradiance over sub-pixel samples once and apply
   the reflectance per pixel, and lets the cosines be tabulated once per
-  scene. ``Lobe.eval(p, opts, n, wi, wo) -> (..., 3)`` gives f itself.
+  scene. A shape may instead be RGB, (..., 3), where the angular part
+  itself has colour (a conductor's Fresnel term); its ``shape_grad``
+  derivative in an RGB parameter is then the diagonal (..., 3), channel c
+  by that parameter's channel c. ``Lobe.eval(p, opts, n, wi, wo) -> (..., 3)``
+  gives f itself.
   ``shape`` must stay finite, with finite gradients, for any directions,
   including cos_i or cos_o <= 0 (the renderer weights those pairs by 0).
   Optionally ``shape_grad(p, opts, c) -> (shape, {name: d shape / d name})``
@@ -195,6 +199,12 @@ class Lobe:
     """One BSDF lobe (see the module docstring for ``kind``, ``shape``, ``radiance``).
 
     Attributes:
+        variants: ``{(option, value): params}``: the parameters that replace
+            ``params`` when that option has that value (e.g. a conductor's RGB
+            ``eta`` and ``k``); ``params_for(opts)`` picks them.
+        derived: ``derived(p, opts) -> {name: value}``, quantities the image
+            determines better than the parameters (``fitter.bsdf.derived``);
+            None: none.
         transmissive: light passes through the sphere (refraction), so what
             the lobe shows depends on the sphere's interior.
         doc: the model in one line (the README's lobe table shows it).
@@ -214,12 +224,25 @@ class Lobe:
     mitsuba: MitsubaMapping | None = None
     transmissive: bool = False
     hints: Hints = Hints()
+    variants: Mapping[tuple[str, Any], tuple[Param, ...]] = dataclasses.field(
+        default_factory=dict, compare=False)
+    derived: Callable[[dict, dict], dict] | None = None
+
+    def params_for(self, opts: Mapping[str, Any]) -> tuple[Param, ...]:
+        """The parameters under options ``opts`` (missing options: their defaults)."""
+        for (name, value), params in self.variants.items():
+            if opts.get(name, self.option(name).default) == value:
+                return params
+        return self.params
 
     def eval(self, p, opts, n, wi, wo):
         """BRDF value f(wi, wo) in 1/sr, RGB (..., 3), for a ``brdf`` lobe."""
-        g = self.shape(p, opts, cosines(n, wi, wo))
+        c = cosines(n, wi, wo)
+        g = self.shape(p, opts, c)
+        if jnp.ndim(g) == jnp.ndim(c.cos_i):  # a colourless shape
+            g = g[..., None]
         scale = jnp.asarray(p[self.scale])
-        return jnp.reshape(scale, (1,) * g.ndim + (-1,)) * g[..., None] * jnp.ones(3)
+        return jnp.reshape(scale, (1,) * (g.ndim - 1) + (-1,)) * g * jnp.ones(3)
 
     def param(self, name: str) -> Param:
         for p in self.params:

@@ -1,7 +1,8 @@
 """The README parameter tables, written from the lobes' ``doc``, ``Param`` and ``Option``.
 
 ``tests/test_bsdf_properties.py`` checks that README.md and configs/README.md
-hold exactly these rows; ``python -m fitter.bsdf.tables`` prints them to paste.
+hold exactly these rows; ``python -m fitter.bsdf.tables`` prints them,
+``python -m fitter.bsdf.tables --write`` rewrites them in place.
 """
 
 from __future__ import annotations
@@ -47,12 +48,22 @@ def _option_summary(o: Option) -> str:
     return f"option `{o.name}` = {values}"
 
 
+def _variant_params(lobe: Lobe):
+    """((option, value), params that differ from the default ones) per variant."""
+    return [((name, value), [p for p in params if p not in lobe.params])
+            for (name, value), params in lobe.variants.items()]
+
+
 def lobe_rows(lobes: Iterable[Lobe]) -> list[str]:
     """README.md, "The physics": | lobe | parameters (valid box) | model |."""
     rows = []
     for lobe in lobes:
-        params = ", ".join(f"`{p.name}`" + (" RGB" if p.size == 3 else "") + f" {_box(p)}"
-                           + ("" if p.free else " (fixed by default)") for p in lobe.params)
+        show = lambda ps: ", ".join(  # noqa: E731
+            f"`{p.name}`" + (" RGB" if p.size == 3 else "") + f" {_box(p)}"
+            + ("" if p.free else " (fixed by default)") for p in ps)
+        params = show(lobe.params)
+        for (name, value), ps in _variant_params(lobe):
+            params += f"; with `{name}` = `{toml(value)}`: {show(ps)}"
         options = "; ".join(_option_summary(o) for o in lobe.options)
         cell = params + (f"; {options}" if options else "")
         rows.append(f"| `{lobe.name}` | {cell} | {lobe.doc} |")
@@ -61,9 +72,15 @@ def lobe_rows(lobes: Iterable[Lobe]) -> list[str]:
 
 def param_rows(lobes: Iterable[Lobe]) -> list[str]:
     """configs/README.md: | key | size | default | valid box | meaning |."""
-    return [f"| `{lobe.name}.{p.name}` | {'RGB' if p.size == 3 else p.size} | "
-            f"{number(p.default)} | {_box(p)} | {_meaning(p)} |"
-            for lobe in lobes for p in lobe.params]
+    row = lambda lobe, p, when="": (  # noqa: E731
+        f"| `{lobe.name}.{p.name}`{when} | {'RGB' if p.size == 3 else p.size} | "
+        f"{number(p.default)} | {_box(p)} | {_meaning(p)} |")
+    rows = []
+    for lobe in lobes:
+        rows += [row(lobe, p) for p in lobe.params]
+        for (name, value), ps in _variant_params(lobe):
+            rows += [row(lobe, p, f" (`{name}` = `{toml(value)}`)") for p in ps]
+    return rows
 
 
 def option_rows(lobes: Iterable[Lobe]) -> list[str]:
@@ -77,10 +94,38 @@ def option_rows(lobes: Iterable[Lobe]) -> list[str]:
     return rows
 
 
-if __name__ == "__main__":
+#: (file, header line of its table, rows function).
+TABLES = (("README.md", "| lobe | parameters (valid box) | model |", lobe_rows),
+          ("configs/README.md", "| key | size | default | valid box | meaning |", param_rows),
+          ("configs/README.md", "| key | values | default | meaning |", option_rows))
+
+
+def write(root: str) -> None:
+    """Replace the body rows of each table in ``TABLES`` under ``root`` by the lobes' rows."""
+    import os
+
     from .registry import LOBES
 
-    for title, rows in (("README.md", lobe_rows(LOBES.values())),
-                        ("configs/README.md parameters", param_rows(LOBES.values())),
-                        ("configs/README.md options", option_rows(LOBES.values()))):
-        print(f"{title}:\n" + "\n".join(rows) + "\n")
+    for name, header, rows in TABLES:
+        path = os.path.join(root, name)
+        with open(path, encoding="utf-8") as fh:
+            lines = fh.read().split("\n")
+        start = lines.index(header) + 2  # header, |---|
+        end = start
+        while end < len(lines) and lines[end].startswith("|"):
+            end += 1
+        lines[start:end] = rows(LOBES.values())
+        with open(path, "w", encoding="utf-8") as fh:
+            fh.write("\n".join(lines))
+
+
+if __name__ == "__main__":
+    import sys
+
+    from .registry import LOBES
+
+    if sys.argv[1:2] == ["--write"]:  # python -m fitter.bsdf.tables --write [ROOT]
+        write(sys.argv[2] if len(sys.argv) > 2 else ".")
+    else:
+        for name, header, rows in TABLES:
+            print(f"{name} {header}:\n" + "\n".join(rows(LOBES.values())) + "\n")

@@ -4,21 +4,34 @@ f = rho_s D(h) G(wi, wo) F(wo.h; eta) / (pi cos_i cos_o), with the lecture's
 D = exp(-tan^2(beta)/m^2) / (4 m^2 cos^4(beta)). Since that D is pi/4 times
 the normalised Beckmann D_n, f = rho_s D_n G F / (4 cos_i cos_o): the same
 BRDF as Mitsuba 3's ``roughconductor`` (``beckmann``, alpha = m, k = 0) when
-G is ``smith``. F is the dielectric Fresnel reflectance at the microfacet,
-cos = wo.h (= wi.h; the lecture writes F(wo)).
+G is ``smith``. F is the Fresnel reflectance at the microfacet, cos = wo.h
+(= wi.h; the lecture writes F(wo)): the dielectric one of a scalar eta, or
+(``fresnel = "conductor"``) the exact unpolarised conductor one of a complex
+index eta + i k per RGB channel (``fresnel.fresnel_conductor``), which makes
+the shape an RGB (..., 3) array and ``eta``, ``k`` RGB parameters (the lobe's
+``variants``).
+
+Identifiability of a conductor: F(theta) is nearly flat up to ~60 degrees and
+rises to 1 only at grazing, so one image fixes F0 = ((eta - 1)^2 + k^2) /
+((eta + 1)^2 + k^2) per channel well and eta, k only along the curve of equal
+F0; ``derived`` reports F0 with its standard error and says so.
 
 Options:
+    fresnel: ``"dielectric"`` (default, scalar ``eta``) or ``"conductor"``
+        (RGB ``eta`` and ``k``).
     geometry: ``"v_groove"`` (Cook-Torrance, default, the lecture's model) or
         ``"smith"`` (Beckmann Smith G1(wi) G1(wo), Walter et al. rational
         form, as Mitsuba).
 
 Mitsuba: ``smith`` is its ``roughconductor`` (Beckmann, alpha = m, k = 0
-gives the dielectric Fresnel); ``v_groove`` is the ``fitter_torrance_sparrow``
-plugin here (``alpha`` = m, ``eta``, ``specular_reflectance``).
+gives the dielectric Fresnel; a conductor passes rgb ``eta`` and ``k``);
+``v_groove`` is the ``fitter_torrance_sparrow`` plugin here (``alpha`` = m,
+``eta``, optional rgb ``k`` for a conductor, ``specular_reflectance``).
 
 References:
     Teschner, *Materials 3*, "Torrance-Sparrow specular material".
     Torrance, Sparrow (1967), JOSA 57(9); Cook, Torrance (1982), ACM TOG 1(1).
+    Pharr, Jakob, Humphreys, *pbrt-v4*, sec. 9.3 (``FrComplex``): conductors.
 """
 
 import math
@@ -26,49 +39,72 @@ import math
 from .._lazy import jnp
 from .._math import safe_div
 from .base import Hints, Lobe, Option, Param, Point, Quadrature
-from .fresnel import fresnel_dielectric, fresnel_dielectric_deta
+from .fresnel import (conductor_f0, fresnel_conductor, fresnel_conductor_grad, fresnel_dielectric,
+                      fresnel_dielectric_deta)
 from .microfacet import (beckmann_d_lecture, beckmann_dlog_d_dm, g_smith, g_v_groove,
                          smith_g1_beckmann_dm)
 from .mitsuba_map import MitsubaMapping, cosine_sampled, props_rgb, rgb
+
+
+def _fresnel(p, opts, cos_d):
+    """F at cos = wo.h and its derivatives {name: dF/d name}: dielectric (...) in
+    scalar eta, or conductor (..., 3) per channel in RGB eta and k (the
+    derivatives of an RGB parameter are the diagonal, channel c by eta_c)."""
+    cos_d = jnp.clip(cos_d, 0.0, 1.0)
+    if opts.get("fresnel", "dielectric") == "conductor":
+        f, d_eta, d_k = fresnel_conductor_grad(cos_d[..., None], p["eta"], p["k"])
+        return f, {"eta": d_eta, "k": d_k}
+    f, d_eta = fresnel_dielectric_deta(cos_d, p["eta"])
+    return f, {"eta": d_eta}
 
 
 def _shape(p, opts, c):
     ci, co, m = c.cos_i, c.cos_o, p["m"]
     ok = (ci > 0) & (co > 0)
     d = beckmann_d_lecture(c.cos_h, c.tan2_h, m)
-    if opts["geometry"] == "smith":
+    if opts.get("geometry", "v_groove") == "smith":
         g = g_smith(ci, co, m)
     else:
         g = g_v_groove(c.cos_h, ci, co, c.cos_d)
+    if opts.get("fresnel", "dielectric") == "conductor":
+        f = fresnel_conductor(jnp.clip(c.cos_d, 0.0, 1.0)[..., None], p["eta"], p["k"])
+        return safe_div(d * g, jnp.pi * ci * co, ok)[..., None] * f
     f = fresnel_dielectric(jnp.clip(c.cos_d, 0.0, 1.0), p["eta"])
     return safe_div(d * g * f, jnp.pi * ci * co, ok)
 
 
 def _shape_grad(p, opts, c):
-    """Shape and its derivatives in m and eta (``Lobe.shape_grad``)."""
+    """Shape and its derivatives in m and eta (and k) (``Lobe.shape_grad``)."""
     ci, co, m = c.cos_i, c.cos_o, p["m"]
     ok = (ci > 0) & (co > 0)
     d = beckmann_d_lecture(c.cos_h, c.tan2_h, m)
     dlog_d = beckmann_dlog_d_dm(jnp.where(d > 0, c.tan2_h, 0.0), m)
-    f, df = fresnel_dielectric_deta(jnp.clip(c.cos_d, 0.0, 1.0), p["eta"])
-    if opts["geometry"] == "smith":
+    f, df = _fresnel(p, opts, c.cos_d)
+    if opts.get("geometry", "v_groove") == "smith":
         g_i, dg_i = smith_g1_beckmann_dm(ci, m)
         g_o, dg_o = smith_g1_beckmann_dm(co, m)
         g, dg = g_i * g_o, dg_i * g_o + g_i * dg_o
     else:
         g, dg = g_v_groove(c.cos_h, ci, co, c.cos_d), 0.0
     base = safe_div(d, jnp.pi * ci * co, ok)
+    if jnp.ndim(f) > jnp.ndim(base):  # RGB Fresnel: colour axis last
+        base, g, dg = base[..., None], jnp.asarray(g)[..., None], jnp.asarray(dg)[..., None]
+        dlog_d = dlog_d[..., None]
     value = base * g * f
-    return value, {"m": value * dlog_d + base * dg * f, "eta": base * g * df}
+    return value, {"m": value * dlog_d + base * dg * f, **{k: base * g * v for k, v in df.items()}}
 
 
 def _mitsuba(p, opts):
     scale = rgb(p["rho_s"])
-    if opts["geometry"] == "smith":
+    if opts.get("fresnel", "dielectric") == "conductor":
+        index = {"eta": rgb(p["eta"]), "k": rgb(p["k"])}
+    else:
+        index = {"eta": float(p["eta"])}
+    if opts.get("geometry", "v_groove") == "smith":
         return {"type": "roughconductor", "distribution": "beckmann", "alpha": float(p["m"]),
-                "eta": float(p["eta"]), "k": 0.0, "specular_reflectance": scale}
-    return {"type": "fitter_torrance_sparrow", "alpha": float(p["m"]),
-            "eta": float(p["eta"]), "specular_reflectance": scale}
+                "k": 0.0, **index, "specular_reflectance": scale}
+    return {"type": "fitter_torrance_sparrow", "alpha": float(p["m"]), **index,
+            "specular_reflectance": scale}
 
 
 def _plugin(mi):
@@ -77,13 +113,25 @@ def _plugin(mi):
     base = cosine_sampled(mi)
 
     class TorranceSparrow(base):
-        """rho_s D_n G F / (4 ci co): normalised Beckmann D, V-groove G, dielectric F."""
+        """rho_s D_n G F / (4 ci co): normalised Beckmann D, V-groove G, and the
+        dielectric F (a float ``eta``) or Mitsuba's conductor F (rgb ``eta``, ``k``)."""
 
         def __init__(self, props):
             base.__init__(self, props)
             self.rho = props_rgb(mi, props, "specular_reflectance", 1.0)
             self.m = mi.Float(max(float(props.get("alpha", 0.2)), 1e-4))
-            self.eta = mi.Float(float(props.get("eta", 1.5)))
+            self.conductor = "k" in props
+            if self.conductor:
+                self.eta = props_rgb(mi, props, "eta", 1.0)
+                self.k = props_rgb(mi, props, "k", 3.0)
+            else:
+                self.eta = mi.Float(float(props.get("eta", 1.5)))
+
+        def _fresnel(self, cos):
+            if not self.conductor:
+                return mi.fresnel(cos, self.eta)[0]
+            return mi.Color3f(*(mi.fresnel_conductor(cos, dr.llvm.ad.Complex2f(
+                self.eta[c], self.k[c])) for c in range(3)))
 
         def _value(self, wi, wo):
             ci, co = wi.z, wo.z
@@ -94,7 +142,7 @@ def _plugin(mi):
             d = dr.exp(-tan2 / m2) / (dr.pi * m2 * dr.square(dr.square(ch)))
             woh = dr.dot(wo, h)
             g = dr.minimum(1.0, 2.0 * ch * dr.minimum(ci, co) / dr.maximum(woh, 1e-30))
-            f = mi.fresnel(dr.clip(woh, 0.0, 1.0), self.eta)[0]
+            f = self._fresnel(dr.clip(woh, 0.0, 1.0))
             val = d * dr.maximum(g, 0.0) * f / (4.0 * ci * co)
             return self.rho * dr.select(ch > 0, val, 0.0)
 
@@ -104,23 +152,46 @@ def _plugin(mi):
     return TorranceSparrow
 
 
+def _derived(p, opts):
+    """F0 per channel of a conductor (``fitter.bsdf.derived``); nothing for a dielectric."""
+    if opts.get("fresnel", "dielectric") != "conductor":
+        return {}
+    return {"F0": conductor_f0(p["eta"], p["k"])}
+
+
 def _quadrature(p):
     """Half vectors about n within the cap where the Beckmann exponent > e^-40;
     the horizon cuts broad lobes (a kink), hence twice the nodes."""
     return Quadrature("half", min(math.pi / 2, math.atan(float(p["m"]) * math.sqrt(40.0))), 2)
 
 
+_M = Param("m", 1, 0.2, 1e-3, 1.0, "log", "Beckmann roughness (RMS facet slope)")
+_RHO = Param("rho_s", 1, 1.0, 0.0, 1.0, "logit", "scale of the lobe", free=False)
+
 LOBE = Lobe(
     name="torrance_sparrow",
     kind="brdf",
     params=(
-        Param("m", 1, 0.2, 1e-3, 1.0, "log", "Beckmann roughness (RMS facet slope)"),
+        _M,
         Param("eta", 1, 1.5, 1.0, 4.0, "eta", "relative index of refraction of the Fresnel term"),
-        Param("rho_s", 1, 1.0, 0.0, 1.0, "logit", "scale of the lobe", free=False),
+        _RHO,
     ),
     options=(Option("geometry", ("v_groove", "smith"), "v_groove",
                     "shadowing-masking G: the lecture's V-groove (Cook-Torrance) or Beckmann "
-                    "Smith (as Mitsuba's `roughconductor`)"),),
+                    "Smith (as Mitsuba's `roughconductor`)"),
+             Option("fresnel", ("dielectric", "conductor"), "dielectric",
+                    "Fresnel term: dielectric (scalar `eta`) or conductor (complex index "
+                    "`eta` + i `k` per RGB channel, as Mitsuba's `roughconductor`; one image "
+                    "pins F0 per channel, not `eta` and `k` separately)")),
+    variants={("fresnel", "conductor"): (
+        _M,
+        Param("eta", 3, 1.0, 1e-2, 10.0, "log",
+              "real part of the conductor's complex index of refraction (Au ≈ 0.14, 0.37, "
+              "1.44); with `k` only F0 = ((η−1)²+k²)/((η+1)²+k²) is well determined"),
+        Param("k", 3, 3.0, 1e-3, 20.0, "log",
+              "extinction coefficient, the imaginary part of the complex index "
+              "(Au ≈ 3.98, 2.39, 1.60)"),
+        _RHO)},
     scale="rho_s",
     shape=_shape,
     shape_grad=_shape_grad,
@@ -128,12 +199,21 @@ LOBE = Lobe(
         "normalized Beckmann D_n G F/(4 cosθ_i cosθ_o); Smith G is Walter et al.'s rational "
         "form, as Mitsuba's `roughconductor`",
     mitsuba=MitsubaMapping(_mitsuba, plugins={"fitter_torrance_sparrow": _plugin}),
+    derived=_derived,
     hints=Hints(
         points=(*(Point(f"ts_{g}-m{m:g}", {"m": m, "eta": 4.0, "rho_s": 1.0}, {"geometry": g})
                   for g in ("v_groove", "smith") for m in (0.01, 0.2, 1.0)),
                 # eta = 1: F = 0, nothing is reflected (positivity, reciprocity only).
                 Point("ts_v_groove-eta1", {"m": 0.3, "eta": 1.0, "rho_s": 1.0},
-                      {"geometry": "v_groove"}, conserving=False)),
+                      {"geometry": "v_groove"}, conserving=False),
+                # Gold and a dark, nearly dielectric conductor: F <= 1 per channel.
+                *(Point(f"ts_{g}-conductor-m{m:g}", {"m": m, "eta": (0.143, 0.375, 1.442),
+                                                       "k": (3.983, 2.386, 1.603), "rho_s": 1.0},
+                        {"geometry": g, "fresnel": "conductor"})
+                  for g in ("v_groove", "smith") for m in (0.05, 0.5)),
+                Point("ts_smith-conductor-dark", {"m": 0.3, "eta": (4.0, 2.0, 0.5),
+                                                  "k": (1e-3, 0.5, 8.0), "rho_s": 1.0},
+                      {"geometry": "smith", "fresnel": "conductor"})),
         example={"m": 0.3, "eta": 1.7},
         quadrature=_quadrature),
 )

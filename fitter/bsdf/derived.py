@@ -1,0 +1,129 @@
+"""Quantities an image determines better than the parameters they combine.
+
+A lobe may name such quantities (``Lobe.derived``): ``derived(p, opts) ->
+{name: value}`` from its own parameters, e.g. a conductor's normal-incidence
+reflectance F0 = ((eta - 1)^2 + k^2) / ((eta + 1)^2 + k^2) per channel, which
+one image pins while eta and k trade along a curve of equal F0.
+``derive(material, result)`` evaluates them at a fit and propagates its
+standard errors by the delta method, var(Q) = g^T C g with g = dQ/dx and C
+the covariance of the fitted parameters (their standard errors and the
+fit's correlation matrix), and writes a warning where the parameters
+themselves are far less certain than the quantity.
+
+Reference: the delta method, e.g. Casella, Berger, *Statistical Inference*
+(2nd ed.), sec. 5.5.4.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..material import Material, lobe_params
+
+#: A fitted input whose relative standard error exceeds this (and is this many
+#: times the derived quantity's) is reported as not determined on its own.
+LOOSE_REL = 0.02
+LOOSE_RATIO = 5.0
+#: Relative step of the central differences of dQ/dx.
+STEP = 1e-6
+
+
+def _cov(result, keys: list[str]):
+    """Covariance of the scalar coordinates of ``keys`` (user units), and their names;
+    None where a key has no standard error (fixed or unidentifiable)."""
+    coords = list(getattr(result, "coordinates", []) or [])
+    corr = np.asarray(getattr(result, "correlation", np.zeros((0, 0))), dtype=float)
+    names, sd = [], []
+    for key in keys:
+        s = result.stderr.get(key)
+        if s is None:
+            return None
+        s = np.atleast_1d(np.asarray(s, dtype=float))
+        sub = [key] if s.size == 1 else [f"{key}[{i}]" for i in range(s.size)]
+        names += sub
+        sd += list(s)
+    idx = [coords.index(n) if n in coords else -1 for n in names]
+    sd = np.asarray(sd)
+    c = np.diag(sd * sd)
+    for a, ia in enumerate(idx):
+        for b, ib in enumerate(idx):
+            if a != b and ia >= 0 and ib >= 0:
+                c[a, b] = corr[ia, ib] * sd[a] * sd[b]
+    return c, names
+
+
+def derive(material: Material, result) -> tuple[dict[str, Any], list[str]]:
+    """``({"lobe.name": {"value": v, "stderr": s}}, warnings)`` at a fit's parameters.
+
+    ``stderr`` is None where an input is fixed or unidentifiable (then the
+    quantity is as certain as the others make it, which the fit cannot say).
+    """
+    out: dict[str, Any] = {}
+    warnings: list[str] = []
+    for lobe in material.lobe_objects:
+        if lobe.derived is None:
+            continue
+        opts = material.options_of(lobe.name)
+        p = {k: np.asarray(v, dtype=float) for k, v in lobe_params(result.params, lobe.name).items()
+             if k not in opts}
+        values = lobe.derived(p, opts)
+        free = [k for k in p if f"{lobe.name}.{k}" in result.free
+                and f"{lobe.name}.{k}" not in result.unidentifiable]
+        cov = _cov(result, [f"{lobe.name}.{k}" for k in free]) if free else None
+        for name, value in values.items():
+            value = np.asarray(value, dtype=float)
+            stderr = None
+            if cov is not None:
+                grads = []
+                for k in free:
+                    x = np.atleast_1d(p[k])
+                    for i in range(x.size):
+                        h = STEP * max(abs(x[i]), 1e-3)
+                        up, dn = dict(p), dict(p)
+                        up[k] = (x + h * np.eye(x.size)[i]).reshape(np.shape(p[k]))
+                        dn[k] = (x - h * np.eye(x.size)[i]).reshape(np.shape(p[k]))
+                        grads.append((np.asarray(lobe.derived(up, opts)[name])
+                                      - np.asarray(lobe.derived(dn, opts)[name])) / (2 * h))
+                g = np.stack([np.atleast_1d(gr) for gr in grads])  # (n_coords, size)
+                stderr = np.sqrt(np.maximum(np.einsum("ia,ij,ja->a", g, cov[0], g), 0.0))
+                stderr = stderr.reshape(value.shape)
+            key = f"{lobe.name}.{name}"
+            out[key] = {"value": _plain(value), "stderr": None if stderr is None
+                        else _plain(stderr)}
+            warnings += _loose(lobe.name, key, value, stderr, free, result)
+    return out, warnings
+
+
+def _loose(lobe: str, key: str, value, stderr, free, result) -> list[str]:
+    """The warning for inputs determined far worse than the quantity ``key``."""
+    if stderr is None:
+        held = [f"{lobe}.{k}" for k in free] + [k for k in result.unidentifiable
+                                                if k.startswith(lobe + ".")]
+        return [f"{key} = {_fmt(value)} (the quantity this image determines); "
+                f"{', '.join(held) or 'its inputs'} are not all identifiable"] if held else []
+    rel_q = np.max(np.abs(np.asarray(stderr)) / np.maximum(np.abs(value), 1e-12))
+    loose = []
+    for k in free:
+        full = f"{lobe}.{k}"
+        x, s = np.asarray(result.params[full], float), np.asarray(result.stderr[full], float)
+        rel = float(np.max(s / np.maximum(np.abs(x), 1e-12)))
+        if rel > LOOSE_REL and rel > LOOSE_RATIO * rel_q:
+            loose.append(f"{full} (relative standard error up to {rel:.2g})")
+    if not loose:
+        return []
+    return [f"{key} = {_fmt(value)} ± {_fmt(stderr)} is what this image determines; "
+            f"{', '.join(loose)} only along the curve of equal {key.split('.')[-1]}, "
+            "so read them as one point of that curve"]
+
+
+def _plain(v):
+    a = np.asarray(v, dtype=float)
+    return float(a) if a.ndim == 0 else [float(x) for x in a.reshape(-1)]
+
+
+def _fmt(v) -> str:
+    a = np.atleast_1d(np.asarray(v, dtype=float))
+    text = ", ".join(f"{x:.4g}" for x in a)
+    return text if a.size == 1 else f"({text})"
