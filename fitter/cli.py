@@ -127,8 +127,8 @@ def _parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser("fit", help="fit a material to a target image",
                        description="Fit the material of CONFIG to its target image and write "
-                                   "result.json, fit.exr, residual.exr, validation.exr and "
-                                   "report.png to OUT. Exit 0 converged, 2 bad input, "
+                                   "result.json, fit.exr, residual.exr, validation.exr, "
+                                   "report.png and scene.xml to OUT. Exit 0 converged, 2 bad input, "
                                    "3 not converged.")
     f.add_argument("config", metavar="CONFIG.toml")
     f.add_argument("--target", metavar="IMG", help="target image (overrides fit.target)")
@@ -197,6 +197,13 @@ def _parser() -> argparse.ArgumentParser:
                         "fit.validate)")
     b.add_argument("--quiet", action="store_true", help="no progress or log output")
     b.set_defaults(run=cmd_batch)
+
+    e = sub.add_parser("export", help="write scene.xml and material.json of a fit's output",
+                       description="Write OUTDIR/scene.xml (the fit as a Mitsuba 3 scene) and "
+                                   "OUTDIR/material.json from OUTDIR's config.toml and "
+                                   "result.json, as `fitter fit` wrote them.")
+    e.add_argument("outdir", metavar="OUTDIR")
+    e.set_defaults(run=cmd_export)
 
     return p
 
@@ -312,6 +319,12 @@ def write_outcome(folder: str, outcome, result: dict) -> None:
         fh.write(dumps_toml(job_to_dict(job)))
     make_report(os.path.join(folder, "report.png"), outcome,
                 title=f"{job.name}: {' + '.join(job.material.lobes)}")
+    from .mitsuba.export import export_job, MitsubaError
+
+    try:  # scene.xml: the fit as a Mitsuba 3 scene
+        export_job(folder, job, outcome.fit.params)
+    except MitsubaError as exc:  # a material Mitsuba cannot express: the fit still counts
+        print(f"warning: no scene.xml: {exc}", file=sys.stderr)
 
 
 # --------------------------------------------------------------------------- commands
@@ -492,6 +505,13 @@ def cmd_render(args) -> int:
         img = pipeline.render_params(job, params)
     write_image(out, img)
     log.print(f"wrote {out}")
+    return EXIT_OK
+
+
+def cmd_export(args) -> int:
+    from .mitsuba.export import export_outdir
+
+    print("wrote " + " and ".join(export_outdir(args.outdir)))
     return EXIT_OK
 
 

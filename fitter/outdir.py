@@ -31,7 +31,7 @@ from .imageio import current_umask
 MARKER = ".fitter-output"
 #: Every name ``fitter fit`` writes into its output folder.
 OUTPUT_NAMES = frozenset({"result.json", "fit.exr", "residual.exr", "validation.exr",
-                          "report.png", "config.toml", MARKER})
+                          "report.png", "config.toml", "scene.xml", "material.json", MARKER})
 
 
 class OutputError(FitterError):

@@ -67,7 +67,7 @@ def test_fit_json_is_the_result_contract_and_recovers_a_forward_model_target(
     for key, te in result["truth_error"].items():
         assert np.max(te["abs"]) < SELF_FIT_ABS, (key, te)
     assert sorted(os.listdir(out)) == [MARKER, "config.toml", "fit.exr", "report.png",
-                                       "residual.exr", "result.json"]
+                                       "residual.exr", "result.json", "scene.xml"]
     with open(out / "result.json") as fh:
         assert json.load(fh) == result
     # fit.exr and residual.exr add up to the target
