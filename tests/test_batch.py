@@ -172,6 +172,13 @@ def test_batch_on_an_external_dask_scheduler_and_two_dask_workers(cases, tmp_pat
         rows = run_batch(paths, str(tmp_path / "batch"), scheduler=address)
         assert [r["status"] for r in rows] == ["converged"] * 2
         assert all((tmp_path / "batch" / r["out"] / "result.json").exists() for r in rows)
+        # the API's other inputs: a Job, and (target array, scene, material), nothing written
+        job = load_config(paths[1])
+        target = imageio.read_image(job.fit.target)
+        rows = run_batch([job, (target, job.scene, job.material)], scheduler=address)
+        assert [r["error"] for r in rows] == ["", ""]
+        assert rows[0]["out"] == rows[1]["out"] == ""  # no folders without out
+        np.testing.assert_allclose(rows[1]["torrance_sparrow.m"], 0.25, rtol=1e-5)
     finally:
         for p in reversed(procs):  # workers first, then the scheduler
             p.send_signal(signal.SIGTERM)
@@ -211,3 +218,17 @@ def test_a_worker_killed_mid_job_has_its_job_run_again_elsewhere(cases, tmp_path
     assert rows[0]["status"] == "converged", rows[0]["error"]
     assert (out / rows[0]["out"] / "result.json").exists()
     assert not _temporaries(out)  # the dead worker's staged folder was removed
+
+
+def test_batch_help_and_command_line_errors_answer_without_dask(tmp_path):
+    code = ("import sys\nfrom fitter.cli import main\n"
+            f"rc = [main(['batch', '--help']), main(['batch', 'x.toml', '--out', "
+            f"{str(tmp_path / 'o')!r}, '--workers', '0']), main(['batch', "
+            f"{str(tmp_path / 'none*.toml')!r}, '--out', {str(tmp_path / 'o')!r}])]\n"
+            "print(rc, 'distributed' in sys.modules, 'jax' in sys.modules)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)
+    # --help 0; --workers 0 and a glob matching nothing: 2, one line each
+    assert proc.stdout.splitlines()[-1] == "[0, 2, 2] False False", proc.stderr
+    errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("fitter: error:")]
+    assert len(errors) == 2 and "--workers 0" in errors[0] and "no config matches" in errors[1]

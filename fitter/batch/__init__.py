@@ -4,8 +4,9 @@
 ``distributed.LocalCluster`` of one-thread worker processes, or an existing
 scheduler) and returns one row per job; with ``out`` each job's outputs are
 written as ``fitter fit`` writes them, under ``out/<config stem>``, with
-``summary.csv`` and ``summary.png`` beside them. Importing this package
-imports Dask: the CLI does it only inside ``fitter batch``.
+``summary.csv`` and ``summary.png`` beside them. Dask is imported only
+when jobs are sent to a cluster (the CLI imports this package only inside
+``fitter batch``).
 
 Modules: ``_jobs`` (configs -> entries, folder names, resume keys),
 ``_task`` (what a worker runs, rows), ``_table`` (CSV and figure),

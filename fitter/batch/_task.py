@@ -53,7 +53,8 @@ def run_entry(entry: Entry, root: str | None) -> dict[str, Any]:
                 result = outcome.to_dict()
                 write_outcome(tmp, outcome, result)
                 write_key(tmp, entry.key, time.perf_counter() - t0)
-        return result_row(entry, result, time.perf_counter() - t0)
+        row = result_row(entry, result, time.perf_counter() - t0)
+        return row if root is not None else {**row, "out": ""}
     except (FitterError, OSError) as exc:
         return error_row(entry, _one_line(exc), time.perf_counter() - t0)
     except Exception as exc:  # an internal fault of one job: reported, the batch goes on
