@@ -8,7 +8,6 @@ with two ``dask worker`` processes, a worker killed while it fits.
 from __future__ import annotations
 
 import copy
-import glob
 import json
 import os
 import signal

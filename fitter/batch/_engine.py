@@ -187,10 +187,11 @@ def _run(client, todo: Sequence[Entry], root: str | None, progress: bool):
     from distributed import as_completed
 
     started: set[int] = set()
-    client.subscribe_topic(TOPIC, lambda event: started.add(event[1]["start"]))
     batch = uuid.uuid4().hex[:8]
-    futures = {client.submit(run_entry, e, root, key=f"fitter-{batch}-{e.index}-{e.name}",
-                             pure=False): e for e in todo}
+    topic = f"{TOPIC}-{batch}"
+    client.subscribe_topic(topic, lambda event: started.add(event[1]["start"]))
+    futures = {client.submit(run_entry, e, root, topic, pure=False,
+                             key=f"fitter-{batch}-{e.index}-{e.name}"): e for e in todo}
     counts = {"converged": 0, "not converged": 0, "error": 0}
     ended: set[int] = set()
     queue = as_completed(list(futures))
@@ -209,7 +210,7 @@ def _run(client, todo: Sequence[Entry], root: str | None, progress: bool):
                 bar.update(counts, len(started - ended))
                 time.sleep(0.1)
     finally:
-        client.unsubscribe_topic(TOPIC)
+        client.unsubscribe_topic(topic)
         client.cancel([f for f in futures if not f.done()])
 
 

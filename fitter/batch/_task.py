@@ -21,14 +21,15 @@ import numpy as np
 from ..errors import FitterError
 from ._jobs import Entry, _one_line, write_key
 
-#: Dask event topic of job starts (the client's progress display counts them).
+#: Dask event topic of job starts (the client's progress display counts them);
+#: each batch adds its own id, so that batches sharing a cluster count their own.
 TOPIC = "fitter-batch"
 STATUSES = ("converged", "max_steps", "failed", "error")
 
 
-def run_entry(entry: Entry, root: str | None) -> dict[str, Any]:
+def run_entry(entry: Entry, root: str | None, topic: str = TOPIC) -> dict[str, Any]:
     """Run one job (on a worker); its summary row. ``root``: batch folder or None."""
-    _announce(entry.index)
+    _announce(topic, entry.index)
     t0 = time.perf_counter()
     try:
         from .. import pipeline
@@ -73,12 +74,12 @@ def _array_target(target: np.ndarray, scene) -> np.ndarray:
     return target
 
 
-def _announce(index: int) -> None:
+def _announce(topic: str, index: int) -> None:
     """Tell the client this job started (for its progress display); silent off a worker."""
     try:
         from distributed import get_worker
 
-        get_worker().log_event(TOPIC, {"start": index})
+        get_worker().log_event(topic, {"start": index})
     except Exception:  # noqa: BLE001 -- not on a worker, or an old scheduler: no display
         pass
 
