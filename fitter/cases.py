@@ -115,7 +115,28 @@ CASES: dict[str, dict] = {
                        environment=_PROBE, spp=SPP_ENV),
 }
 
+#: Mitsuba 3.9's ``roughconductor`` ``material = "Au"`` in the rgb variants.
+_GOLD = {"torrance_sparrow.eta": [0.143, 0.3753, 1.442],
+         "torrance_sparrow.k": [3.983, 2.3856, 1.6034]}
+
+
+def _sized(case: dict, size: int) -> dict:
+    case["scene"]["width"] = case["scene"]["height"] = size
+    return case
+
+
+CASES.update({
+    "metal_gold": _sized(_case(["torrance_sparrow"], {**_GOLD, "torrance_sparrow.m": 0.25},
+                               fixed={**_SMITH, "torrance_sparrow.fresnel": "conductor"}), 64),
+    "bright_phong": _sized(_case(["phong"], {"phong.rho_s": [4.0, 4.0, 4.0],
+                                             "phong.e": 300.0}), 96),
+})
+
 NOTES: dict[str, str] = {
+    "metal_gold": "Gold roughconductor (Mitsuba's Au eta, k; Smith G, m = 0.25), 64^2: "
+                  "F0 per channel is what the image pins, eta and k trade along its curve.",
+    "bright_phong": "Lecture Phong with rho_s = 4, e = 300 (albedo 0.083: rho_s is the "
+                    "peak, not a reflectance), 96^2.",
     "lambert": "Lambert alone, two point lights (Mitsuba diffuse).",
     "oren_nayar": "Oren-Nayar alone, sigma = 0.4 (Python plugin fitter_oren_nayar).",
     "phong": "Un-normalised Phong alone, e = 50 (Python plugin fitter_phong).",

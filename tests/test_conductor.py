@@ -5,9 +5,9 @@
   limits (k = 0 is the dielectric; F0 closed form) and its hand derivatives.
 * The lobe's conductor variant: RGB ``eta``/``k`` parameters, the renderer's
   RGB shape against Mitsuba's ``roughconductor`` and the plugin.
-* Recovery: a Mitsuba gold sphere under two point lights gives F0 within 0.01
-  per channel and m within 2 %, and the result says eta/k are not separately
-  determined.
+* Recovery: the shipped Mitsuba gold sphere under two point lights
+  (``configs/metal_gold.toml``) gives F0 within 0.01 per channel and m within
+  2 %, and the result says eta/k are not separately determined.
 
 References: Born, Wolf, *Principles of Optics*, sec. 14.2 (metals: the Fresnel
 formulas with a complex index); pbrt-v4 ``FrComplex``.
@@ -15,13 +15,17 @@ formulas with a complex index); pbrt-v4 ``FrComplex``.
 
 from __future__ import annotations
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import fitter
+from fitter import pipeline
 from fitter.bsdf.derived import derive
+from fitter.config import load_config
 from fitter.bsdf.fresnel import (conductor_f0, fresnel_conductor, fresnel_conductor_grad,
                                  fresnel_dielectric)
 from fitter.material import Material, MaterialError
@@ -108,30 +112,37 @@ def test_conductor_render_matches_mitsuba(geometry):
     assert np.all(np.abs(rel) < 2e-3), rel
 
 
-@pytest.fixture(scope="module")
-def gold_fit():
-    import fitter.mitsuba as fm
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-    scene = fitter.Scene(width=48, height=48, supersampling=4, lights=LIGHTS)
-    mat = Material.make(["torrance_sparrow"], {**CONDUCTOR, "torrance_sparrow.geometry": "smith"})
-    truth = {**AU, "torrance_sparrow.m": 0.25}
-    target = np.asarray(fm.render(scene, mat, truth, spp=256, seed=5))
-    return mat, truth, fitter.fit(target, scene, mat)
+
+@pytest.fixture(scope="module")
+def gold_outcome():
+    """The shipped case ``metal_gold``: Mitsuba's gold roughconductor, 64^2, 1024 spp."""
+    job = load_config(os.path.join(ROOT, "configs", "metal_gold.toml"))
+    job = job.replace(fit=job.fit.replace(validate=False))
+    target, saturated = pipeline.read_target(job.fit.target, job.scene)
+    return job, pipeline.run_job(job, target, saturated)
 
 
 @pytest.mark.mitsuba
-def test_gold_sphere_recovers_f0_and_roughness(gold_fit):
-    mat, truth, res = gold_fit
+def test_gold_sphere_recovers_f0_and_roughness(gold_outcome):
+    job, out = gold_outcome
+    res, truth = out.fit, job.truth
     assert res.converged, res.message
     eta, k = (np.asarray(res.params[f"torrance_sparrow.{n}"]) for n in ("eta", "k"))
     assert eta.shape == (3,) and k.shape == (3,)
     f0_true = conductor_f0(np.asarray(truth["torrance_sparrow.eta"]),
                            np.asarray(truth["torrance_sparrow.k"]))
     np.testing.assert_allclose(conductor_f0(eta, k), f0_true, atol=0.01)
-    assert res.params["torrance_sparrow.m"] == pytest.approx(0.25, rel=0.02)
-    derived, notes = derive(mat, res)
-    f0 = derived["torrance_sparrow.F0"]
+    assert res.params["torrance_sparrow.m"] == pytest.approx(truth["torrance_sparrow.m"],
+                                                             rel=0.02)
+    d = out.to_dict()
+    assert isinstance(d["params"]["torrance_sparrow.eta"], list)
+    assert isinstance(d["params"]["torrance_sparrow.m"], float)
+    f0 = d["derived"]["torrance_sparrow.F0"]
     np.testing.assert_allclose(f0["value"], f0_true, atol=0.01)
     assert f0["stderr"] is not None and max(f0["stderr"]) < 0.01
     # eta and k trade along the curve of equal F0: the result says so.
-    assert any("curve of equal F0" in n for n in notes), notes
+    assert any("curve of equal F0" in w for w in d["warnings"]), d["warnings"]
+    derived, _ = derive(job.material, res)
+    assert derived == d["derived"]

@@ -83,7 +83,8 @@ LOBE = Lobe(
     params=(
         Param("eta", 1, 1.5, 1.0, 4.0, "eta", "index of refraction inside / outside"),
         Param("attenuation", 3, 1.0, 0.0, 1.0, "logit",
-              "Beer-Lambert transmittance per unit path length (world units)"),
+              "Beer-Lambert transmittance c per world unit of path inside (L_a = c^d L_b), "
+              "not a surface reflectance"),
     ),
     options=(Option("bounces", None, 8, "internal reflections followed"),),
     radiance=_radiance,

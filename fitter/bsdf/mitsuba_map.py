@@ -60,6 +60,15 @@ def rgb(v) -> dict:
     return {"type": "rgb", "value": [float(x) for x in np.broadcast_to(np.asarray(v, float), 3)]}
 
 
+def rgb_unbounded(v) -> dict:
+    """A colour texture that may exceed 1 (Mitsuba's ``rgb`` of a reflectance may not):
+    ``srgb`` with ``unbounded``; the plain ``rgb`` where every value is in [0, 1]."""
+    d = rgb(v)
+    if all(0.0 <= x <= 1.0 for x in d["value"]):
+        return d
+    return {"type": "srgb", "color": d["value"], "unbounded": True}
+
+
 def absorbing_medium(attenuation) -> dict | None:
     """Interior ``homogeneous`` medium with transmittance ``attenuation`` per unit length.
 

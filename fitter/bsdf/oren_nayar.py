@@ -88,7 +88,9 @@ LOBE = Lobe(
     name="oren_nayar",
     kind="brdf",
     params=(
-        Param("rho_d", 3, 0.5, 0.0, 1.0, "logit", "diffuse reflectance"),
+        Param("rho_d", 3, 0.5, 0.0, 1.0, "logit",
+              "albedo of the Lambertian facets; the surface's albedo at normal incidence is "
+              "A ρ_d (A = 1 − σ²/(2(σ²+0.33)))"),
         Param("sigma", 1, 0.3, 0.0, 1.5, "box",
               "std-dev of the facet slope angle, radians (lecture: σ² ≤ 1)"),
     ),

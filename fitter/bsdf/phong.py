@@ -7,6 +7,11 @@ its directional-hemispherical reflectance at normal incidence exactly rho_s
 lecture's un-normalised form can reflect more energy than it receives (for
 e = 1, 2 pi / 3 rho_s at normal incidence); it is kept as the default because
 it is the lecture's model, and flagged by ``tests/test_bsdf_properties.py``.
+There rho_s is the lobe's peak, not a reflectance: energy conservation bounds
+its albedo rho_s 2 pi / (e + 2), not rho_s, so a bright sharp highlight
+(rho_s = 4, e = 300: albedo 0.083) is physical and its box reaches
+``RHO_MAX``; normalised, rho_s is the albedo and its box is [0, 1]
+(``Lobe.variants``).
 
 pow is evaluated as exp(e log c) so e up to 1e4 is exact in float64.
 
@@ -21,7 +26,7 @@ import math
 from .._lazy import jnp
 from .._math import safe_pow
 from .base import Hints, Lobe, Option, Param, Point, Quadrature
-from .mitsuba_map import MitsubaMapping, cosine_sampled, props_rgb, rgb
+from .mitsuba_map import MitsubaMapping, cosine_sampled, props_rgb, rgb_unbounded
 
 
 def _shape(p, opts, c):
@@ -47,7 +52,7 @@ def _shape_grad(p, opts, c):
 
 
 def _mitsuba(p, opts):
-    return {"type": "fitter_phong", "specular_reflectance": rgb(p["rho_s"]),
+    return {"type": "fitter_phong", "specular_reflectance": rgb_unbounded(p["rho_s"]),
             "exponent": float(p["e"]), "normalized": bool(opts["normalized"])}
 
 
@@ -85,20 +90,35 @@ def _quadrature(p):
 
 _ONES = (1.0, 1.0, 1.0)
 
+#: Upper bound of the lecture form's rho_s: its albedo at normal incidence is
+#: rho_s 2 pi / (e + 2), so albedo <= 1 allows rho_s up to (e + 2) / (2 pi), 1592
+#: at the largest e of the box (1e4). The box cannot follow e; this is the bound
+#: physics sets over the whole box (fit in logit, which is log-like well below it).
+RHO_MAX = 1600.0
+_E = Param("e", 1, 20.0, 1.0, 1e4, "log", "specular exponent")
+
 LOBE = Lobe(
     name="phong",
     kind="brdf",
     params=(
-        Param("rho_s", 3, 0.5, 0.0, 1.0, "logit", "specular reflectance"),
-        Param("e", 1, 20.0, 1.0, 1e4, "log", "specular exponent"),
+        Param("rho_s", 3, 0.5, 0.0, RHO_MAX, "logit",
+              "peak value of the lobe (1/sr), not a reflectance: its albedo at normal "
+              "incidence is ρ_s 2π/(e+2), ≤ 1 for ρ_s ≤ (e+2)/2π (the box allows that at "
+              "e = 1e4)"),
+        _E,
     ),
+    variants={("normalized", True): (
+        Param("rho_s", 3, 0.5, 0.0, 1.0, "logit",
+              "specular albedo at normal incidence (directional-hemispherical reflectance)"),
+        _E)},
     options=(Option("normalized", (False, True), False,
                     "scale by (e + 2)/(2π) so the lobe's albedo at normal incidence is ρ_s"),),
     scale="rho_s",
     shape=_shape,
     shape_grad=_shape_grad,
-    doc="ρ_s cos^e α; normalized variant × (e+2)/2π. The un-normalized lecture form can "
-        "exceed energy conservation (flagged in the tests)",
+    doc="ρ_s cos^e α; normalized variant × (e+2)/2π. In the lecture form ρ_s is the peak "
+        "(albedo at normal incidence ρ_s 2π/(e+2), which energy conservation bounds, not ρ_s); "
+        "it can exceed energy conservation (flagged in the tests)",
     mitsuba=MitsubaMapping(_mitsuba, plugins={"fitter_phong": _plugin}),
     hints=Hints(
         points=(*(Point(f"phong_norm-e{e:g}", {"rho_s": _ONES, "e": e}, {"normalized": True})

@@ -83,10 +83,10 @@ def _blend_sum(d: dict, direct: bool) -> dict:
     for c in children:
         key = SCALE_KEYS[c["type"]]
         value = c.get(key, {"type": "rgb", "value": [1.0, 1.0, 1.0]})
-        rgb = value["value"] if isinstance(value, dict) else [float(value)] * 3
+        rgb = ([float(value)] * 3 if not isinstance(value, dict)
+               else value["value"] if value["type"] == "rgb" else value["color"])
         # An rgb reflectance must lie in [0, 1]; ``srgb`` with ``unbounded`` may exceed it.
-        value = {"type": "srgb", "color": {"type": "rgb", "value": [n * float(v) for v in rgb]},
-                 "unbounded": True}
+        value = {"type": "srgb", "color": [n * float(v) for v in rgb], "unbounded": True}
         scaled.append({**c, key: value})
 
     def mean(parts):
@@ -157,6 +157,8 @@ def _element(mi, parent, name, value, folder):
         ET.SubElement(parent, "float", name=name, value=_num(value))
     elif isinstance(value, str):
         ET.SubElement(parent, "string", name=name, value=value)
+    elif isinstance(value, (list, tuple)) and len(value) == 3 and name == "color":
+        ET.SubElement(parent, "rgb", name=name, value=", ".join(_num(v) for v in value))
     elif isinstance(value, (list, tuple)) and len(value) == 3:
         ET.SubElement(parent, "vector" if name == "direction" else "point", name=name,
                       value=", ".join(_num(v) for v in value))
