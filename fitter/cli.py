@@ -227,9 +227,14 @@ class _Log:
 
     @contextlib.contextmanager
     def stage(self, text: str):
+        """A spinner with the elapsed seconds while the stage runs, then its time."""
+        from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
         _check_interrupt()
         t0 = time.perf_counter()
-        with self.console.status(text + " ..."):
+        with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                      console=self.console, transient=True) as bar:
+            bar.add_task(text + " ...", total=None)
             yield
         _check_interrupt()
         self.console.print(f"[dim]{text}: {time.perf_counter() - t0:.2f} s[/dim]")
