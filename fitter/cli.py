@@ -36,6 +36,7 @@ import tempfile
 import time
 from typing import Any, Sequence
 
+from .compilation_cache import enable_compilation_cache
 from .errors import FitterError
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
@@ -69,10 +70,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"fitter: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_INPUT
-
-
-# Shared with fitter.batch workers (fitter.compilation_cache); the name is kept.
-from .compilation_cache import enable_compilation_cache as _enable_compilation_cache  # noqa: E402
 
 
 _INTERRUPTED: list[int] = []  # signals received during this command
@@ -354,7 +351,7 @@ def cmd_fit(args) -> int:
     target, saturated = pipeline.read_target(target_path, job.scene)
     job = job.replace(fit=job.fit.replace(target=target_path))  # config.toml records it
     out = check_out(args.out or os.path.join("out", job.name))  # before any fitting
-    _enable_compilation_cache()
+    enable_compilation_cache()
     _import_in_background("matplotlib.figure", "matplotlib.backends.backend_agg", "colour")
     with staged_dir(out) as tmp:
         outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
@@ -505,7 +502,7 @@ def cmd_render(args) -> int:
     params = read_params(args.params, job) if args.params else pipeline.truth_params(job)
     from .imageio import write_image
 
-    _enable_compilation_cache()
+    enable_compilation_cache()
     with log.stage("rendering"):
         img = pipeline.render_params(job, params)
     write_image(out, img)
