@@ -14,7 +14,8 @@ two seeds.
   difference over the interior < MEAN_REL_TOL.
 * Silhouette pixels: the model's k x k midpoint rule misclassifies at most
   the ~2k sub-cells an edge crosses, so |difference| <= 2/k of the image peak
-  per pixel, and the silhouette's total flux agrees within MEAN_REL_TOL.
+  per pixel (and within SIL_PEAK_TOL, the measured level with a margin), and the
+  silhouette's total flux agrees within SIL_FLUX_TOL.
 """
 
 from __future__ import annotations
@@ -35,7 +36,18 @@ SIZE = 64
 ALPHA = 1e-3  # family-wise false-alarm rate of the per-pixel test
 POOL = 5  # pixels per side over which the noise variance is pooled
 POOL_DOF = 25
-MEAN_REL_TOL = 0.01  # the brief's bound on mean relative differences
+#: Interior mean relative difference. Measured (64^2, 1024-4096 spp, seeds 1+2):
+#: 1.3e-6 (mirror) to 1.43e-4 (Phong); the bound keeps a margin of 2 over the
+#: worst (the renders are deterministic per seed; the margin is for versions).
+MEAN_REL_TOL = 3e-4
+#: Silhouette total flux relative difference. Measured: 1.2e-4 (mirror) to
+#: 7.8e-3 (Torrance-Sparrow V-groove at a grazing light): the 16^2 midpoint
+#: rule's coverage error; bound 1e-2 (margin 1.3).
+SIL_FLUX_TOL = 0.01
+#: Largest silhouette pixel difference / image peak. The midpoint rule's bound is
+#: 2/k = 0.125; measured 1e-26 (Phong: dark rim) to 2.4e-2 (dielectric,
+#: Lambert); bound 5e-2 (margin 2).
+SIL_PEAK_TOL = 0.05
 #: Floors on the per-pixel noise: Mitsuba renders in float32 (relative
 #: rounding ~1e-7 per operation, ~1e-5 after a chain of them), so a pixel whose
 #: Monte Carlo noise vanishes is still compared only up to this relative
@@ -125,10 +137,11 @@ def test_model_matches_mitsuba(name, envmap):
     # Silhouette: the midpoint rule's coverage error bound, and total flux.
     sil_err = float(np.abs(mitsuba - model)[silhouette].max())
     assert sil_err <= 2.0 / K * peak, f"{name}: silhouette error {sil_err:.3g} > 2/k peak"
+    assert sil_err <= SIL_PEAK_TOL * peak, f"{name}: silhouette error {sil_err / peak:.3g} peak"
     sil_flux = float(model[silhouette].sum())
     if sil_flux > 1e-3 * float(model.sum()):
         sil_rel = abs(float((mitsuba - model)[silhouette].sum())) / sil_flux
-        assert sil_rel < MEAN_REL_TOL, f"{name}: silhouette flux differs by {sil_rel:.2e}"
+        assert sil_rel < SIL_FLUX_TOL, f"{name}: silhouette flux differs by {sil_rel:.2e}"
 
 
 def test_envmap_lookup_matches_mitsuba_emitter(envmap):
