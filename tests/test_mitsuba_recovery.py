@@ -36,7 +36,8 @@ ATTENUATION_ABS = 0.01
 #: (absolute, relative) tolerance per parameter name.
 TOLERANCES = {"rho_d": (RHO_ABS, 0.0), "rho_s": (RHO_ABS, 0.0), "rho_m": (RHO_ABS, 0.0),
               "sigma": (SIGMA_ABS, 0.0), "m": (0.0, M_REL), "e": (0.0, E_REL),
-              "eta": (ETA_ABS, 0.0), "attenuation": (ATTENUATION_ABS, 0.0)}
+              "eta": (ETA_ABS, 0.0), "attenuation": (ATTENUATION_ABS, 0.0),
+              "k": (ETA_ABS, 0.0)}  # a conductor's k, the imaginary part of its index
 #: Extreme cases: looser, stated tolerances (measured errors in the comments).
 EXTREME = {
     # e = 2000: highlight ~2 pixels wide, 4 x 4 sub-pixel samples; measured rho_s
@@ -44,6 +45,10 @@ EXTREME = {
     "extreme_sharp_phong": {"phong.rho_s": (0.01, 0.0)},
     # eta = 1.02: the specular lobe is ~1e-4 of the diffuse; measured m off 2.1 %.
     "extreme_low_eta": {"torrance_sparrow.m": (0.0, 0.05)},
+    # A conductor's eta and k trade along the curve of equal F0 (measured red eta
+    # 0.037 vs 0.143, k 1.82 vs 3.98 at F0 within 3e-4): tests/test_conductor.py
+    # checks F0 (0.01) and m (2 %) of this case.
+    "metal_gold": {"torrance_sparrow.eta": (np.inf, 0.0), "torrance_sparrow.k": (np.inf, 0.0)},
 }
 #: Cases whose solver stops at max_steps by design: sigma = 0 sits on its box
 #: edge, where the transformed coordinate runs off to infinity; the values

@@ -71,7 +71,8 @@ def test_case_table_is_valid_config(name, tmp_path):
     case_dir = tmp_path / name
     case_dir.mkdir()
     job = config.job_from_dict(CASES[name], base_dir=str(case_dir))
-    assert job.scene.width == 128 and job.scene.supersampling == 4
+    size = {"metal_gold": 64, "bright_phong": 96}.get(name, 128)  # small cases (issue 13)
+    assert job.scene.width == size and job.scene.supersampling == 4
     assert NOTES[name]
     fm.translate.check_translatable(job.scene, job.material)
 

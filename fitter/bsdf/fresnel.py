@@ -130,7 +130,8 @@ def fresnel_conductor_grad(cos_i, eta, k):
     Chain rule through the terms of ``_conductor_terms``: dA/d eta =
     2 eta (t1 + 2 k^2)/A, dA/dk = 2 k (2 eta^2 - t1)/A, and, using A + t1 =
     2 a^2 so that no difference of near-equal numbers is formed,
-    d a^2/d eta = 2 eta (a^2 + k^2)/A, d a^2/dk = 2 k (eta^2 - a^2)/A.
+    d a^2/d eta = 2 eta (a^2 + k^2)/A, d a^2/dk = 2 k (eta^2 - a^2)/A with
+    eta^2 - a^2 = 2 eta^2 s2 / (eta^2 + k^2 + s2 + A).
     Requires eta > 0 and k > 0 or eta >= 1 (a > 0); the lobe's box keeps
     both positive. ``tests/test_conductor.py`` checks them against
     ``jax.jacfwd`` and the value against complex arithmetic.
@@ -139,7 +140,10 @@ def fresnel_conductor_grad(cos_i, eta, k):
     a = jnp.sqrt(a2)
     t1 = eta * eta - k * k - s2
     d_big = (2.0 * eta * (t1 + 2.0 * k * k) / big, 2.0 * k * (2.0 * eta * eta - t1) / big)
-    d_a = (eta * (a2 + k * k) / (big * a), k * (eta * eta - a2) / (big * a))
+    # eta^2 - a^2 = (P - A)/2 with P = eta^2 + k^2 + s2, and P^2 - A^2 = 4 eta^2 s2:
+    # written as 2 eta^2 s2 / (P + A), it keeps its digits near normal incidence.
+    e2_a2 = 2.0 * eta * eta * s2 / (eta * eta + k * k + s2 + big)
+    d_a = (eta * (a2 + k * k) / (big * a), k * e2_a2 / (big * a))
     t_1 = big + c2
     t_2 = 2.0 * cos_i * a
     r_s = (t_1 - t_2) / (t_1 + t_2)
