@@ -65,17 +65,24 @@ def _plugin(mi):
     base = cosine_sampled(mi)
 
     class OrenNayar(base):
-        """rho/pi (A + B max(0, wi.wo - ci co) / max(ci, co)), as ``_shape``."""
+        """The lecture's angle form, written from angles (not ``_shape``'s dot
+        products, so the Mitsuba cross-check stays independent):
+        rho/pi (A + B max(0, cos(phi_i - phi_o)) sin(alpha) tan(beta)),
+        theta = atan2(|w_xy|, w_z) (accurate in float32, unlike acos near 1)."""
 
         def __init__(self, props):
             base.__init__(self, props)
             self.rho = props_rgb(mi, props, "reflectance", 0.5)
-            a, b = coefficients(float(props.get("sigma", 0.3)))
-            self.a, self.b = mi.Float(a), mi.Float(b)
+            s2 = float(props.get("sigma", 0.3)) ** 2
+            self.a = mi.Float(1.0 - s2 / (2.0 * (s2 + 0.33)))
+            self.b = mi.Float(0.45 * s2 / (s2 + 0.09))
 
         def _value(self, wi, wo):
-            ci, co = wi.z, wo.z
-            term = dr.maximum(dr.dot(wi, wo) - ci * co, 0.0) / dr.maximum(dr.maximum(ci, co), 1e-12)
+            ti = dr.atan2(dr.sqrt(wi.x * wi.x + wi.y * wi.y), wi.z)
+            to = dr.atan2(dr.sqrt(wo.x * wo.x + wo.y * wo.y), wo.z)
+            cos_dphi = dr.cos(dr.atan2(wi.y, wi.x) - dr.atan2(wo.y, wo.x))
+            alpha, beta = dr.maximum(ti, to), dr.minimum(ti, to)
+            term = dr.maximum(cos_dphi, 0.0) * dr.sin(alpha) * dr.tan(beta)
             return self.rho * (dr.inv_pi * (self.a + self.b * term))
 
         def to_string(self):

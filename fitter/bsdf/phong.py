@@ -62,7 +62,7 @@ def _plugin(mi):
     base = cosine_sampled(mi)
 
     class Phong(base):
-        """rho_s cos^e(alpha), cos(alpha) = 2 ci co - wi.wo, optionally (e+2)/(2 pi)."""
+        """rho_s ((2 (n.wi) n - wi).wo)^e, optionally (e+2)/(2 pi)."""
 
         def __init__(self, props):
             base.__init__(self, props)
@@ -73,7 +73,10 @@ def _plugin(mi):
                                  if props.get("normalized", False) else 1.0)
 
         def _value(self, wi, wo):
-            c = 2.0 * wi.z * wo.z - dr.dot(wi, wo)
+            # The lecture's form with the mirror vector built explicitly,
+            # r = 2 (n.wi) n - wi (n = +z locally), not ``_shape``'s identity.
+            r = mi.Vector3f(-wi.x, -wi.y, wi.z)
+            c = dr.dot(r, wo)
             lobe = dr.select(c > 0, dr.exp(self.e * dr.log(dr.maximum(c, 1e-30))), 0.0)
             return self.rho * (lobe * self.norm)
 

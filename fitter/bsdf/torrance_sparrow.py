@@ -134,14 +134,19 @@ def _plugin(mi):
                 self.eta[c], self.k[c])) for c in range(3)))
 
         def _value(self, wi, wo):
+            # Written from the lecture's angle forms, not the JAX identities:
+            # beta the half vector's angle (atan2, float32-accurate near 0),
+            # D_n = exp(-tan^2 beta / m^2) / (pi m^2 cos^4 beta), and the
+            # V-groove G = min(1, 2 (n.h)(n.wo)/(wo.h), 2 (n.h)(n.wi)/(wo.h)).
             ci, co = wi.z, wo.z
             h = dr.normalize(wi + wo)
             ch = h.z
-            tan2 = (h.x * h.x + h.y * h.y) / dr.maximum(ch * ch, 1e-30)
+            beta = dr.atan2(dr.sqrt(h.x * h.x + h.y * h.y), ch)
             m2 = self.m * self.m
-            d = dr.exp(-tan2 / m2) / (dr.pi * m2 * dr.square(dr.square(ch)))
-            woh = dr.dot(wo, h)
-            g = dr.minimum(1.0, 2.0 * ch * dr.minimum(ci, co) / dr.maximum(woh, 1e-30))
+            cos4 = dr.square(dr.square(dr.cos(beta)))
+            d = dr.exp(-dr.square(dr.tan(beta)) / m2) / (dr.pi * m2 * cos4)
+            woh = dr.maximum(dr.dot(wo, h), 1e-30)
+            g = dr.minimum(1.0, dr.minimum(2.0 * ch * co / woh, 2.0 * ch * ci / woh))
             f = self._fresnel(dr.clip(woh, 0.0, 1.0))
             val = d * dr.maximum(g, 0.0) * f / (4.0 * ci * co)
             return self.rho * dr.select(ch > 0, val, 0.0)
