@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import copy
-import os
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -103,26 +100,5 @@ def test_values_and_gradients_are_finite_for_sharp_lobes_under_a_tiny_sun(sun_pr
     assert np.isfinite(val) and np.all(np.isfinite(np.asarray(grad)))
 
 
-# ----------------------------------------------------------- shipped Mitsuba cases
-#: Measured recovery of the shipped env-lit Mitsuba targets (128^2, 2116 spp).
-TOL = {"lambert.rho_d": 0.008, "oren_nayar.rho_d": 0.008, "oren_nayar.sigma": 0.03,
-       "torrance_sparrow.m": 0.09, "torrance_sparrow.eta": 0.025, "phong.e": 0.06,
-       "phong.rho_s": 0.01}
-RELATIVE = {"torrance_sparrow.m", "phong.e"}
-ROOT = os.path.join(os.path.dirname(__file__), os.pardir)
-
-
-@pytest.mark.parametrize("name", [n for n in CASES if n.startswith("env_")])
-def test_env_lit_mitsuba_case_is_recovered(name):
-    from fitter import pipeline
-    from fitter.config import load_config
-    from fitter.imageio import read_image
-
-    job = load_config(os.path.join(ROOT, "configs", f"{name}.toml"))
-    target = np.asarray(read_image(os.path.join(ROOT, "data_synthetic", name, "target.exr")))
-    res = pipeline.fit_job(job, target, np.zeros(target.shape[:2], bool))
-    for key, truth in job.truth.items():
-        fit, truth = np.asarray(res.params[key]), np.asarray(truth)
-        err = np.abs(fit - truth) / (truth if key in RELATIVE else 1.0)
-        assert np.all(err <= TOL[key]), (key, fit, truth)
-    assert copy.deepcopy(job.truth)
+# The shipped env_* Mitsuba cases are recovered by tests/test_mitsuba_recovery.py
+# (every case of fitter.cases), with the measured gaps stated there.
