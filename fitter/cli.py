@@ -38,6 +38,7 @@ from typing import Any, Sequence
 
 from .compilation_cache import enable_compilation_cache
 from .errors import FitterError
+from .outputs import write_outcome
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
 
@@ -294,39 +295,6 @@ def read_params(path: str, job) -> dict[str, Any]:
     except (ValueError, TypeError) as exc:
         raise UsageError(f"{path}: {exc}") from None
     return full
-
-
-# --------------------------------------------------------------------------- outputs
-
-
-def _write_json(path: str, data) -> None:
-    with open(path, "w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=2, allow_nan=False)
-        fh.write("\n")
-
-
-def write_outcome(folder: str, outcome, result: dict) -> None:
-    """Write an outcome's files into ``folder`` (a staged, still hidden folder)."""
-    from .config import dumps_toml, job_to_dict
-    from .imageio import write_image
-    from .report import make_report
-
-    job = outcome.job
-    write_image(os.path.join(folder, "fit.exr"), outcome.rendered)
-    write_image(os.path.join(folder, "residual.exr"), outcome.residual)
-    if outcome.validation is not None:
-        write_image(os.path.join(folder, "validation.exr"), outcome.validation.image)
-    _write_json(os.path.join(folder, "result.json"), result)
-    with open(os.path.join(folder, "config.toml"), "w", encoding="utf-8") as fh:
-        fh.write(dumps_toml(job_to_dict(job)))
-    make_report(os.path.join(folder, "report.png"), outcome,
-                title=f"{job.name}: {' + '.join(job.material.lobes)}")
-    from .mitsuba.export import export_job, MitsubaError
-
-    try:  # scene.xml: the fit as a Mitsuba 3 scene
-        export_job(folder, job, outcome.fit.params)
-    except MitsubaError as exc:  # a material Mitsuba cannot express: the fit still counts
-        print(f"warning: no scene.xml: {exc}", file=sys.stderr)
 
 
 # --------------------------------------------------------------------------- commands

@@ -2,7 +2,7 @@
 
 ``run_entry`` is what is submitted: it reads the target, runs
 ``fitter.pipeline.run_job`` and, with an output folder, writes exactly what
-``fitter fit`` writes (``fitter.cli.write_outcome``), staged and swapped in by
+``fitter fit`` writes (``fitter.outputs.write_outcome``), staged and swapped in by
 ``fitter.outdir.staged_dir``, plus the resume key. Every error a job can
 meet becomes an error row: a bad job never fails the batch. Compiled solvers
 stay in the worker process (``fitter.fit._compile``) and on disk
@@ -46,7 +46,7 @@ def run_entry(entry: Entry, root: str | None, topic: str = TOPIC) -> dict[str, A
             outcome = pipeline.run_job(job, target, saturated, target_path=target_path)
             result = outcome.to_dict()
         else:
-            from ..cli import write_outcome
+            from ..outputs import write_outcome
             from ..outdir import staged_dir
 
             with staged_dir(os.path.join(root, entry.name)) as tmp:
