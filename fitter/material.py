@@ -65,6 +65,8 @@ class Material:
             if spec.choices is None:
                 if not isinstance(value, int) or isinstance(value, bool) or value < 0:
                     raise MaterialError(f"{key} = {value!r}: expected an integer >= 0")
+                if spec.most is not None and value > spec.most:
+                    raise MaterialError(f"{key} = {value!r} is over the limit of {spec.most}")
             elif value not in spec.choices or type(value) is not type(spec.default):
                 raise MaterialError(f"{key} = {value!r}: allowed values are "
                                     + ", ".join(repr(c) for c in spec.choices))

@@ -165,3 +165,18 @@ def test_a_signal_during_start_up_stops_the_run_and_keeps_the_old_result(
     assert err.strip().endswith("fitter: interrupted") and "Traceback" not in err
     assert (out / "keep.txt").read_text() == "old"
     assert sorted(os.listdir(tmp_path)) == ["res"]
+
+
+def test_dielectric_bounces_are_capped_before_any_work(tmp_path, capsys):
+    # 1e8 bounces once ran for 10 minutes ignoring signals (one compiled scan).
+    def edit(data):
+        data["material"] = {"lobes": ["dielectric"], "truth": {"dielectric.eta": 1.5},
+                            "fixed": {"dielectric.bounces": 100_000_000}}
+        data["scene"]["environment"] = {"type": "constant", "radiance": [1.0, 1.0, 1.0]}
+    data = json.loads(json.dumps(SMALL))
+    edit(data)
+    path = tmp_path / "cfg.toml"
+    path.write_text(dumps_toml(data))
+    code, _, err = _run(capsys, "fit", path, "--out", tmp_path / "res")
+    assert code == 2 and "dielectric.bounces" in err and "limit of 64" in err, err
+    assert "Traceback" not in err and not (tmp_path / "res").exists()

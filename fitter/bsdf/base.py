@@ -85,13 +85,15 @@ class Param:
 class Option:
     """A discrete lobe setting (static: changing it recompiles).
 
-    ``choices`` None: any int >= 0. ``doc`` is configs/README.md's meaning.
+    ``choices`` None: any int in [0, ``most``] (``most`` bounds the work a
+    value asks for; None: unbounded). ``doc`` is configs/README.md's meaning.
     """
 
     name: str
     choices: tuple[Any, ...]
     default: Any
     doc: str = ""
+    most: int | None = None
 
 
 class Cosines(NamedTuple):

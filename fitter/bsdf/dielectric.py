@@ -86,7 +86,9 @@ LOBE = Lobe(
               "Beer-Lambert transmittance c per world unit of path inside (L_a = c^d L_b), "
               "not a surface reflectance"),
     ),
-    options=(Option("bounces", None, 8, "internal reflections followed"),),
+    # Each bounce is one more pass over the samples; 64 (8x the default) bounds
+    # the work a config may ask for (1e8 bounces once ran for 10 minutes).
+    options=(Option("bounces", None, 8, "internal reflections followed", most=64),),
     radiance=_radiance,
     doc="Fresnel reflection + Snell refraction through the sphere, total internal reflection, "
         "η² radiance scaling (cancels on a full pass), Beer-Lambert c^d with d in world units",

@@ -88,7 +88,8 @@ def option_rows(lobes: Iterable[Lobe]) -> list[str]:
     rows = []
     for lobe in lobes:
         for o in lobe.options:
-            values = ("int ≥ 0" if o.choices is None
+            values = ((f"int in [0, {o.most}]" if o.most is not None else "int ≥ 0")
+                      if o.choices is None
                       else r" \| ".join(f"`{toml(c)}`" for c in o.choices))
             rows.append(f"| `{lobe.name}.{o.name}` | {values} | `{toml(o.default)}` | {o.doc} |")
     return rows
