@@ -33,7 +33,7 @@ def fit(target, scene, x0, *, spp=16, lr=0.02, iters=200, record=None, variant=N
 
     from fitter.material import Material
     from fitter.mitsuba import scene_dict
-    from fitter.mitsuba._variant import load
+    from fitter.mitsuba.variant import load
 
     mi, _ = load(variant)
     x0 = np.asarray(x0, dtype=float)

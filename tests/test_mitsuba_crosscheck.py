@@ -154,9 +154,9 @@ def test_envmap_lookup_matches_mitsuba_emitter(envmap):
     import jax.numpy as jnp
 
     from fitter import environment
-    from fitter.mitsuba import _variant
+    from fitter.mitsuba import variant
 
-    mi, _ = _variant.load(None)
+    mi, _ = variant.load(None)
     emitter = mi.load_dict({"type": "scene", "env": {"type": "envmap", "filename": envmap}}
                            ).emitters()[0]
     rng = np.random.default_rng(0)

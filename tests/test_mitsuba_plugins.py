@@ -16,7 +16,7 @@ import pytest
 
 import fitter
 from fitter.material import lobe_params
-from fitter.mitsuba import _variant, plugins
+from fitter.mitsuba import plugins, variant
 from fitter.mitsuba.translate import bsdf_dict
 
 pytestmark = pytest.mark.mitsuba
@@ -69,7 +69,7 @@ PLUGIN_CASES = [name for name, case in MATERIALS.items() if _uses_plugin(case)]
 
 @pytest.fixture(scope="module")
 def mi():
-    mi, _ = _variant.load(None)
+    mi, _ = variant.load(None)
     plugins.register(mi)
     return mi
 

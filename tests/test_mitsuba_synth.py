@@ -14,7 +14,7 @@ import fitter.mitsuba as fm
 from fitter import config
 from fitter.imageio import read_image
 from fitter.metrics import compare
-from fitter.mitsuba import _variant
+from fitter.mitsuba import variant
 from fitter.cases import CASES, NOTES
 from fitter.mitsuba.synth import make_envmap, make_probe, write_case
 from fitter.mitsuba.translate import medium_dict, stratified_spp
@@ -135,28 +135,28 @@ def test_every_lobe_has_a_mitsuba_mapping():
 
 
 def test_variant_choice(monkeypatch):
-    monkeypatch.delenv(_variant.ENV_VAR, raising=False)
-    monkeypatch.setattr(_variant, "_gpu_present", lambda: False)
-    assert _variant.choose_variant() == "llvm_ad_rgb"
-    monkeypatch.setattr(_variant, "_gpu_present", lambda: True)
-    assert _variant.choose_variant() == "cuda_ad_rgb"
-    monkeypatch.setenv(_variant.ENV_VAR, "scalar_rgb")
-    assert _variant.choose_variant() == "scalar_rgb"
-    assert _variant.choose_variant("llvm_ad_rgb") == "llvm_ad_rgb"
+    monkeypatch.delenv(variant.ENV_VAR, raising=False)
+    monkeypatch.setattr(variant, "_gpu_present", lambda: False)
+    assert variant.choose_variant() == "llvm_ad_rgb"
+    monkeypatch.setattr(variant, "_gpu_present", lambda: True)
+    assert variant.choose_variant() == "cuda_ad_rgb"
+    monkeypatch.setenv(variant.ENV_VAR, "scalar_rgb")
+    assert variant.choose_variant() == "scalar_rgb"
+    assert variant.choose_variant("llvm_ad_rgb") == "llvm_ad_rgb"
 
 
 def test_unknown_variant_is_one_sentence():
     with pytest.raises(fm.MitsubaError, match="not available"):
-        _variant.load("no_such_variant")
+        variant.load("no_such_variant")
 
 
 def test_find_libllvm_picks_newest_at_least_16(tmp_path):
     for name in ("libLLVM-14.so.1", "libLLVM-15.so", "libLLVM.so.19.1", "libLLVM-17.so"):
         (tmp_path / name).write_bytes(b"")
-    assert os.path.basename(_variant.find_libllvm([str(tmp_path)])) == "libLLVM.so.19.1"
+    assert os.path.basename(variant.find_libllvm([str(tmp_path)])) == "libLLVM.so.19.1"
     (tmp_path / "libLLVM.so.19.1").unlink()
     (tmp_path / "libLLVM-17.so").unlink()
-    assert _variant.find_libllvm([str(tmp_path)]) is None
+    assert variant.find_libllvm([str(tmp_path)]) is None
 
 
 # ------------------------------------------------------------------ metrics
@@ -220,7 +220,7 @@ def test_old_llvm_is_a_clear_error_not_an_abort():
             "m = fitter.Material.make('torrance_sparrow', {'torrance_sparrow.geometry': 'smith'})\n"
             "try:\n    fm.render(sc, m, {}, spp=4)\n"
             "except fm.MitsubaError as e:\n    print('MitsubaError:', e)\n")
-    env = {**os.environ, "DRJIT_LIBLLVM_PATH": OLD_LLVM, _variant.ENV_VAR: "llvm_ad_rgb"}
+    env = {**os.environ, "DRJIT_LIBLLVM_PATH": OLD_LLVM, variant.ENV_VAR: "llvm_ad_rgb"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          timeout=120)
     assert out.returncode == 0, out.stderr[-500:]

@@ -123,9 +123,9 @@ def test_mitsuba_plugin_and_render():
     import test_mitsuba_plugins as plug
 
     import fitter.mitsuba as fm
-    from fitter.mitsuba import _variant, plugins
+    from fitter.mitsuba import plugins, variant
 
-    mi, _ = _variant.load(None)
+    mi, _ = variant.load(None)
     plugins.register(mi)
     case = (MATTE.name, {}, TRUTH)
     plug.check_eval(MATTE.name, case, mi)

@@ -8,21 +8,21 @@ shipped ones. Mitsuba and drjit are imported on the first call, never by
 
 Variant: the ``variant`` argument, else ``$FITTER_MITSUBA_VARIANT``, else
 ``cuda_ad_rgb`` when an NVIDIA GPU is present, else ``llvm_ad_rgb`` (which
-needs libLLVM >= 16; see ``_variant``).
+needs libLLVM >= 16; see ``variant``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ._variant import MitsubaError as MitsubaError, choose_variant as choose_variant
+from .variant import MitsubaError as MitsubaError, choose_variant as choose_variant
 from .translate import scene_dict as scene_dict, stratified_spp as stratified_spp
 
 
 def load_scene(scene, material, params, *, spp=256, seed=0, variant=None, base_dir=None):
     """The loaded ``mi.Scene`` (variant set, plugins registered)."""
     from . import plugins
-    from ._variant import load
+    from .variant import load
 
     mi, _ = load(variant)
     plugins.register(mi)

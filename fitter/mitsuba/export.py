@@ -44,7 +44,7 @@ import numpy as np
 from ..material import Material
 from ..scene import Scene
 from . import translate
-from ._variant import MitsubaError
+from .variant import MitsubaError
 
 #: Built-in BSDF type -> its parameter that scales the whole BSDF linearly.
 SCALE_KEYS = {"diffuse": "reflectance", "roughconductor": "specular_reflectance",
@@ -181,7 +181,7 @@ def _copy_beside(path: str, folder: str) -> str:
 
 def scene_xml(d: dict, folder: str) -> str:
     """The XML text of scene dict ``d`` (files it reads copied into ``folder``)."""
-    from ._variant import load
+    from .variant import load
 
     mi, _ = load(None)
     d = _stock(d)

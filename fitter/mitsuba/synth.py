@@ -103,7 +103,7 @@ def write_case(out_dir: str, scene: Scene, material: Material, params, *, spp: i
     files are reproducible.
     """
     from . import render
-    from ._variant import load
+    from .variant import load
     from .translate import integrator_dict, stratified_spp
 
     truth = serialize.plain(material.full_params(params))

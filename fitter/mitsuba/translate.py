@@ -34,7 +34,7 @@ import os
 from ..bsdf.mitsuba_map import SIGMA_T_MAX as SIGMA_T_MAX, absorbing_medium, rgb as _rgb
 from ..material import Material, lobe_params
 from ..scene import DirectionalLight, PointLight, Scene
-from ._variant import MitsubaError
+from .variant import MitsubaError
 
 #: An absorbing medium (kept under its former name).
 medium_dict = absorbing_medium
@@ -160,7 +160,7 @@ def scene_dict(scene: Scene, material: Material, params, *, spp: int, seed: int,
     the camera transform is a Mitsuba object; the Python plugins the dict
     names are registered by ``fitter.mitsuba.render`` before loading.
     """
-    from ._variant import load
+    from .variant import load
 
     mi, _ = load(variant)
     check_translatable(scene, material)
