@@ -9,7 +9,6 @@ error-vs-time runs at several resolutions.
 
 from __future__ import annotations
 
-import sys
 import time
 
 import numpy as np
@@ -52,23 +51,20 @@ def run(spec: dict) -> dict:
                "torrance_sparrow.m": rng.uniform(0.1, 0.4),
                "torrance_sparrow.eta": rng.uniform(1.3, 1.8)} for _ in range(nb)]
     targets = np.stack([np.asarray(fitter.render(t, scene, job.material)) for t in truths])
-    fit_batch = (getattr(fitter, "fit_batch", None) or getattr(fitter.fit, "fit_batch", None)
-                 or getattr(sys.modules.get("fitter.fit._fit"), "fit_batch", None))
     fitter.fit(targets[0], scene, job.material, init=init, fixed=job.fixed)  # compile
     t0 = time.perf_counter()
     seq = [fitter.fit(t, scene, job.material, init=init, fixed=job.fixed) for t in targets]
     t_seq = time.perf_counter() - t0
     b = {"n": nb, "res": int(spec["res"]), "sequential_s": t_seq,
          "sequential_converged": sum(r.converged for r in seq), "batch_s": None}
-    if fit_batch is not None:
-        # "map": one compiled loop over the targets (the default on CPU);
-        # "vmap": every target's solver vectorised, run for the slowest one's steps.
-        for mode, key in (("map", "batch"), ("vmap", "vmap")):
-            kw = dict(init=init, fixed=job.fixed, batch=mode)
-            fit_batch(targets, scene, job.material, **kw)  # compile
-            t0 = time.perf_counter()
-            res = fit_batch(targets, scene, job.material, **kw)
-            b[f"{key}_s"] = time.perf_counter() - t0
-            b[f"{key}_converged"] = sum(r.converged for r in res)
+    # "map": one compiled loop over the targets (the default on CPU);
+    # "vmap": every target's solver vectorised, run for the slowest one's steps.
+    for mode, key in (("map", "batch"), ("vmap", "vmap")):
+        kw = dict(init=init, fixed=job.fixed, batch=mode)
+        fitter.fit_batch(targets, scene, job.material, **kw)  # compile
+        t0 = time.perf_counter()
+        res = fitter.fit_batch(targets, scene, job.material, **kw)
+        b[f"{key}_s"] = time.perf_counter() - t0
+        b[f"{key}_converged"] = sum(r.converged for r in res)
     out["batch"] = b
     return out
