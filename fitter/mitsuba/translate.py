@@ -33,7 +33,7 @@ import os
 
 from ..bsdf.mitsuba_map import SIGMA_T_MAX as SIGMA_T_MAX, absorbing_medium, rgb as _rgb
 from ..material import Material, lobe_params
-from ..scene import DirectionalLight, PointLight, Scene
+from ..scene import DirectionalLight, PointLight, Scene, resolve_path
 from .variant import MitsubaError
 
 #: An absorbing medium (kept under its former name).
@@ -140,9 +140,7 @@ def _emitters(scene: Scene, base_dir) -> dict:
         out["environment"] = {"type": "constant",
                               "radiance": _rgb([float(c) * env.scale for c in env.radiance])}
     elif env.type == "envmap":
-        path = env.file
-        if base_dir is not None and not os.path.isabs(path):
-            path = os.path.join(base_dir, path)
+        path = resolve_path(env.file, base_dir)
         if not os.path.exists(path):
             raise MitsubaError(f"environment.file = {env.file!r}: file not found ({path})")
         out["environment"] = {"type": "envmap", "filename": os.path.abspath(path),
