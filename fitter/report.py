@@ -35,6 +35,11 @@ BIAS_SIGMAS = 100.0
 #: is at most just noticeable (Sharma et al. 2005; see fitter.metrics).
 INVISIBLE_DE = 1.0
 JND_DE = 2.3
+#: The largest per-pixel CIEDE2000 bounds the badge too: a mean below 1 can hide
+#: a visible spot (a roughplastic sphere fitted with lambert + torrance_sparrow:
+#: mean below 1, max 6.7). A max up to JND_DE is invisible, up to MAX_NOTICEABLE_DE
+#: at most just noticeable where it sits, above it visible.
+MAX_NOTICEABLE_DE = 5.0
 
 #: Smallest font a text is shrunk to before lines are dropped (points).
 MIN_FONT = 6.5
@@ -108,26 +113,41 @@ def _frame(ax, title: str) -> None:
 def _headline(ax, outcome: Outcome, title: str) -> None:
     ax.axis("off")
     res = outcome.fit
-    verdict = "CONVERGED" if res.converged else f"NOT CONVERGED ({res.status})"
-    x_text = _badge(ax, 0.0, verdict, GOOD if res.converged else BAD)
+    x_text = _badge(ax, 0.0, *fit_badge(res))
     bits = [title] if title else []
     v = outcome.validation
     if v is not None:
         de = v.delta_e2000_mean
-        if not np.isfinite(de):
-            label, colour = "Mitsuba: n/a", BAD
-        elif de <= INVISIBLE_DE:
-            label, colour = "MITSUBA: NO VISIBLE DIFFERENCE", GOOD
-        elif de <= JND_DE:
-            label, colour = "MITSUBA: JUST NOTICEABLE", WARN
-        else:
-            label, colour = "MITSUBA: VISIBLE DIFFERENCE", BAD
-        x_text = _badge(ax, x_text, label, colour)
+        x_text = _badge(ax, x_text, *mitsuba_badge(de, v.delta_e2000_max))
         bits.append(f"PSNR {fmt(v.psnr_db, '.1f')} dB, "
                     f"ΔE2000 mean {fmt(de, '.2g')}, max {fmt(v.delta_e2000_max, '.2g')}")
     bits.append(f"image RMSE {fmt(res.rmse, '.3g')}")
     text = ax.text(x_text, 0.5, "  |  ".join(bits), fontsize=12, va="center")
     _fit_inside(text, ax)
+
+
+def fit_badge(res) -> tuple[str, str]:
+    """(label, colour) of the fit's verdict: a fit whose residual shows the lobes
+    cannot explain the image says so; a converged fit with a structured residual
+    (its stated errors mostly systematic) is amber."""
+    if "cannot explain the image" in res.message:
+        return f"MODEL CANNOT EXPLAIN THE IMAGE ({res.status})", BAD
+    if not res.converged:
+        return f"NOT CONVERGED ({res.status})", BAD
+    if any(w.startswith("the residual is spatially structured") for w in res.warnings):
+        return "CONVERGED, STRUCTURED RESIDUAL", WARN
+    return "CONVERGED", GOOD
+
+
+def mitsuba_badge(mean_de: float, max_de: float) -> tuple[str, str]:
+    """(label, colour) of the Mitsuba agreement from the mean and the max CIEDE2000."""
+    if not (np.isfinite(mean_de) and np.isfinite(max_de)):
+        return "Mitsuba: n/a", BAD
+    if mean_de <= INVISIBLE_DE and max_de <= JND_DE:
+        return "MITSUBA: NO VISIBLE DIFFERENCE", GOOD
+    if mean_de <= JND_DE and max_de <= MAX_NOTICEABLE_DE:
+        return "MITSUBA: JUST NOTICEABLE", WARN
+    return "MITSUBA: VISIBLE DIFFERENCE", BAD
 
 
 def _badge(ax, x: float, text: str, colour: str) -> float:

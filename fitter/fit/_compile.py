@@ -39,6 +39,12 @@ def jacobian_r(spec: Spec, z, data):
     return J, r
 
 
+def jacobian_full(spec: Spec, z, data):
+    """(J (N, n), r (N,)) at ``z``: the whole Jacobian, for the block sandwich
+    covariance (``_adequacy.sandwich``), which needs J's rows."""
+    return jax.jacfwd(lambda z: (residuals(z, data, spec),) * 2, has_aux=True)(z)
+
+
 def r_factor(J) -> np.ndarray:
     """R factor (n, n) in float64 of a Jacobian, or R itself, from ``jacobian_r``."""
     J = np.asarray(J, dtype=np.float64)
@@ -104,7 +110,8 @@ def compiled(kind: str, spec: Spec, args, **static):
     """Compile (once per structure and shapes) and return (executable, seconds spent).
 
     ``kind``: ``"solve"`` (multi-start solve of one target), ``"batch"`` (one
-    start per stacked target) or ``"jacres"`` (``jacobian_r``).
+    start per stacked target), ``"jacres"`` (``jacobian_r``) or ``"jacfull"``
+    (``jacobian_full``).
     """
     shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
     key = (kind, spec, tuple(sorted(static.items())), str(shapes))
@@ -114,6 +121,8 @@ def compiled(kind: str, spec: Spec, args, **static):
         f = _solve_fn(spec, **static)
     elif kind == "batch":
         f = _batch_fn(spec, **static)
+    elif kind == "jacfull":
+        f = functools.partial(jacobian_full, spec)
     else:  # Jacobian (as its R factor in float64) and residuals in one pass
         f = functools.partial(jacobian_r, spec)
     # optimistix creates some constants (e.g. LM's damping) as Python floats, which
@@ -121,7 +130,8 @@ def compiled(kind: str, spec: Spec, args, **static):
     single = jnp.result_type(args[0]) == jnp.float32
     t0 = time.perf_counter()
     with jax.enable_x64(not single):
-        exe = compile_cached(f, args, repr(key), SOLVE_XLA_OPTIONS if kind != "jacres" else None)
+        exe = compile_cached(f, args, repr(key),
+                             None if kind in ("jacres", "jacfull") else SOLVE_XLA_OPTIONS)
     _COMPILED[key] = exe
     return exe, time.perf_counter() - t0
 
@@ -136,3 +146,11 @@ def jac_res(spec: Spec, z, data):
     exe, tc = compiled("jacres", spec, (z, data))
     R, r = exe(z, data)
     return r_factor(R), np.asarray(r, dtype=np.float64), tc
+
+
+def jac_full(spec: Spec, z, data):
+    """(J (N, n), residuals (N,), compile seconds) at ``z``, float64 NumPy."""
+    z = jnp.asarray(z, dtype=data.target.dtype)
+    exe, tc = compiled("jacfull", spec, (z, data))
+    J, r = exe(z, data)
+    return np.asarray(J, dtype=np.float64), np.asarray(r, dtype=np.float64), tc

@@ -47,14 +47,28 @@ def covariance(spec: Spec, z, J, s2: float):
     as a fraction of the box (for log boxes, in log). ``J`` may be the
     Jacobian's R factor (same J^T J).
     """
-    z = np.asarray(z, dtype=np.float64)
-    x, dxdz, scale, edge = frame(spec, z)
-    J = np.array(J, dtype=np.float64)
-    J[:, edge] *= (scale / np.where(dxdz > 0, dxdz, np.inf))[edge]
+    J = scaled_jacobian(spec, z, J)
     cov = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
     blind = np.linalg.norm(J, axis=0) == 0
     cov[blind, :] = cov[:, blind] = 0.0
     cov[blind, blind] = np.inf
+    return (cov, *intervals(spec, z, cov))
+
+
+def scaled_jacobian(spec: Spec, z, J) -> np.ndarray:
+    """J (or its R factor) in the coordinates of ``covariance``: the column of a
+    value at its bound divided by dx/dz, times its natural scale."""
+    x, dxdz, scale, edge = frame(spec, np.asarray(z, dtype=np.float64))
+    J = np.array(J, dtype=np.float64)
+    J[:, edge] *= (scale / np.where(dxdz > 0, dxdz, np.inf))[edge]
+    return J
+
+
+def intervals(spec: Spec, z, cov):
+    """(stderr (n,), span (n,)) of a covariance of the coordinates at ``z``, as
+    ``covariance`` describes."""
+    z = np.asarray(z, dtype=np.float64)
+    x, _, scale, edge = frame(spec, z)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     finite = np.isfinite(sd)
     d = np.where(finite, sd, 1e300)
@@ -68,4 +82,4 @@ def covariance(spec: Spec, z, J, s2: float):
         transforms.box_fraction(b.transform, hi[sl], b.lower, b.upper)
         - transforms.box_fraction(b.transform, lo[sl], b.lower, b.upper))
         for b, sl in spec.slices()])
-    return cov, np.where(finite, 0.5 * (hi - lo), np.inf), np.where(finite, span, 1.0)
+    return np.where(finite, 0.5 * (hi - lo), np.inf), np.where(finite, span, 1.0)

@@ -8,7 +8,10 @@ import time
 import numpy as np
 
 from ..render import render_active
-from ._covariance import covariance, degrees_of_freedom, residual_variance
+from . import _adequacy
+from ._compile import jac_full
+from ._covariance import (covariance, degrees_of_freedom, intervals, residual_variance,
+                          scaled_jacobian)
 from ._problem import Data, Spec, blocks_of, format_value, frame, robust, user_values
 from ._setup import Problem
 from ._solvers import solver_outcome
@@ -72,8 +75,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
     if problem.noise_sigma is not None and status == "converged" and chi2 / dof > MAX_REDUCED_CHI2:
         status = "failed"
         message = (f"poor fit: chi^2/dof = {chi2 / dof:.3g} > {MAX_REDUCED_CHI2} for the "
-                   "given noise_sigma (a local minimum or a model that cannot explain the "
-                   "image; try n_starts > 1)")
+                   "given noise_sigma")
     cov_z, sd, _ = covariance(spec, z, J, s2)
     if not np.all(np.isfinite(cov_z)):
         blind = np.isinf(np.diag(cov_z))
@@ -85,10 +87,14 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         sd = np.zeros_like(sd)
     params = user_values(spec, z, data.fixed)
     at_edge = frame(spec, z)[3]
-    stderr, coords = {}, []
+    sd_stat, sd_sys, hac = sd, np.zeros_like(sd), None
+    if np.all(np.isfinite(cov_z)) and np.any(sd > 0):
+        sd, sd_sys, hac = _with_systematic(problem, spec, data, z, cov_z, sd)
+    stderr, stderr_stat, stderr_sys, coords = {}, {}, {}, []
     for blk, sl in spec.slices():
         if blk.key not in unidentifiable:  # marked ambiguous: no error to give
-            stderr[blk.key] = sd[sl] if blk.size == 3 else float(sd[sl][0])
+            for out, v in ((stderr, sd), (stderr_stat, sd_stat), (stderr_sys, sd_sys)):
+                out[blk.key] = v[sl] if blk.size == 3 else float(v[sl][0])
         coords += [blk.key] if blk.size == 1 else [f"{blk.key}[{i}]" for i in range(3)]
         if np.any(at_edge[sl]):
             warnings.append(f"{blk.key} = {format_value(params[blk.key])} is at the bound of "
@@ -114,9 +120,33 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         status = "failed"
         level = (f"noise level (its floor, {NOISE_FLOOR:g} of the mean value: the target "
                  "looks noise-free)" if floored else "noise level (Immerkaer estimate)")
-        message = (f"poor fit: the residual RMSE is {ratio:.3g} times the target's {level}: "
-                   "a local minimum or a model that cannot explain the image; try "
-                   "n_starts > 1 or other initial values")
+        message = f"poor fit: the residual RMSE is {ratio:.3g} times the target's {level}"
+    err = np.where(used, model - np.asarray(data.target), 0.0)
+    pix = np.asarray(problem.renderer.pixel_index)[problem.rows]
+    adequacy = {
+        "noise_ratio": ratio, "noise_floored": bool(floored),
+        "regions": _adequacy.region_stats(err, used, _adequacy.pixel_regions(data.geometry),
+                                          scale),
+        "neighbour_correlation": _adequacy.neighbour_correlation(
+            err, pix, problem.renderer.scene.width)}
+    if hac is not None:
+        adequacy["blocks"] = hac
+    failing = status == "failed" and message.startswith("poor fit")
+    # Out of steps from several starts that agree: not the start, nor (only)
+    # the budget -- judged like a converged fit, the model comes first.
+    if status == "converged" or (status == "max_steps" and _adequacy.starts_agree(starts)):
+        verdict = _adequacy.judge(adequacy, float(np.sqrt(np.mean(rmse**2))) / max(mean, 1e-300))
+        if verdict is not None:
+            if status == "max_steps":
+                verdict += f" (and the solver stopped after {problem.static['max_steps']} steps)"
+            status, message, failing = "failed", verdict, True
+    if failing:
+        message = f"{message}: {_adequacy.cause(err, model, used, adequacy, starts)}"
+    sys_ratio = np.max(sd_sys / np.maximum(sd_stat, 1e-300)) if sd.size else 0.0
+    if status == "converged" and sys_ratio > _adequacy.SYS_WARN:
+        warnings.append(f"the residual is spatially structured ({_adequacy.where(adequacy)}): "
+                        "the stated errors include a systematic part up to "
+                        f"{sys_ratio:.3g} times the statistical one (stderr_sys, stderr_stat)")
     total = time.perf_counter() - t_start
     return FitResult(
         params={k: (np.asarray(params[k]) if np.size(params[k]) > 1 else float(params[k]))
@@ -126,7 +156,24 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         n_pixels=int(problem.rows.size),
         n_excluded=problem.n_dropped + int(np.sum(~used.all(axis=-1))),
         time_compile=t_compile, time_run=max(total - t_compile, 0.0),
-        warnings=warnings, starts=starts, fitted=problem.fitted(0 if b is None else b))
+        warnings=warnings, starts=starts, fitted=problem.fitted(0 if b is None else b),
+        stderr_stat=stderr_stat, stderr_sys=stderr_sys, adequacy=adequacy)
+
+
+def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_stat):
+    """(stderr total (n,), stderr systematic (n,), block info): the statistical
+    covariance plus the significant excess of the spatial-block sandwich
+    (``_adequacy``) over it; the parts add in quadrature."""
+    J, r, _ = jac_full(spec, z, data)
+    pix = np.asarray(problem.renderer.pixel_index)[problem.rows]
+    ids, n_blocks = _adequacy.block_ids(pix, problem.renderer.scene.width)
+    cov_hac = _adequacy.sandwich(scaled_jacobian(spec, z, J), r, ids, n_blocks)
+    cov_sys = _adequacy.systematic(cov_stat, cov_hac, n_blocks)
+    sd_tot = intervals(spec, z, cov_stat + cov_sys)[0]
+    sd_sys = np.sqrt(np.maximum(sd_tot**2 - sd_stat**2, 0.0))
+    ratio = np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300)
+    return sd_tot, sd_sys, {"n_blocks": int(n_blocks),
+                            "hac_over_stat_max": float(np.sqrt(np.max(ratio)))}
 
 
 def all_held(problem: Problem, b: int, t_compile: float, t_run: float) -> FitResult:

@@ -15,11 +15,24 @@ class FitResult:
     Attributes:
         params: every parameter of the material in user units,
             ``{"lobe.param": float or (3,) array}`` (fixed ones included).
-        stderr: one-sigma standard errors of the free, identifiable
+        stderr: one-sigma stated errors of the free, identifiable
             parameters, same shapes: half the width of the +-1 sigma interval
-            of the Gauss-Newton covariance s^2 (J^T J)^-1, mapped through the
-            parameter transform and clipped to the box (the delta method when
-            small; see ``fitter.fit._covariance.covariance``).
+            of the total covariance (statistical + systematic, below), mapped
+            through the parameter transform and clipped to the box (the delta
+            method when small; see ``fitter.fit._covariance.covariance``).
+        stderr_stat: the statistical part alone: the Gauss-Newton covariance
+            s^2 (J^T J)^-1 (the Cramer-Rao bound for white pixel noise).
+        stderr_sys: the systematic part, sqrt(stderr^2 - stderr_stat^2): what
+            spatially structured residuals (a model that cannot follow the
+            image, its discretisation) add, from a spatial-block sandwich
+            covariance; 0 where the residuals look white
+            (``fitter.fit._adequacy``).
+        adequacy: what the residual says about the model: ``noise_ratio``
+            (residual RMSE / noise level), ``regions`` (per region of the
+            sphere -- body, highlight, rim --: pixels, RMSE / noise, share of
+            the residual energy), ``neighbour_correlation`` (lag-1, ~0 for
+            white residuals) and ``blocks`` (the sandwich's block count and
+            largest sqrt(V_hac / V_stat)).
         free: names of the parameters that were fitted.
         unidentifiable: parameters the data cannot constrain; they have no
             stderr. Held at their initial value, except those only found
@@ -62,6 +75,9 @@ class FitResult:
     warnings: list[str] = dataclasses.field(default_factory=list)
     starts: list[dict] = dataclasses.field(default_factory=list)
     fitted: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    stderr_stat: dict[str, Any] = dataclasses.field(default_factory=dict)
+    stderr_sys: dict[str, Any] = dataclasses.field(default_factory=dict)
+    adequacy: dict = dataclasses.field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -77,6 +93,9 @@ class FitResult:
         return {
             "params": {k: _plain(v) for k, v in self.params.items()},
             "stderr": {k: _plain(v) for k, v in self.stderr.items()},
+            "stderr_stat": {k: _plain(v) for k, v in self.stderr_stat.items()},
+            "stderr_sys": {k: _plain(v) for k, v in self.stderr_sys.items()},
+            "adequacy": self.adequacy,
             "unidentifiable": list(self.unidentifiable),
             "status": self.status,
             "message": self.message,
