@@ -21,7 +21,7 @@ from ..scene import Scene
 from . import _args
 from ._compile import compiled, jac_res, r_factor
 from ._covariance import residual_variance
-from ._identify import ambiguous, dead_columns, unidentifiable_at
+from ._identify import WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction
 from ._problem import blocks_of, format_value, user_values, z_from_params
 from ._setup import START_MARGIN, FitError, Problem
 from ._starts import starts as make_starts
@@ -32,6 +32,9 @@ from .result import FitResult
 MAX_REFITS = 2
 #: The zero-column check at the start first looks at every 8th fitted pixel.
 START_CHECK_STRIDE = 8
+#: Starts a one-start fit is re-solved from when the solution lies in a weakly
+#: identified valley (``_identify.weak_direction``).
+AUTO_STARTS = 4
 
 
 def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None,
@@ -106,14 +109,30 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     t_compile += tc
     zs, codes, nsteps, costs, best, (R, r) = solve(z0s, data)
     zs, codes, nsteps, costs, best = (np.asarray(a) for a in (zs, codes, nsteps, costs, best))
+    note = None
+    if n_starts == 1 and identifiability:
+        eig, along = weak_direction(problem.spec, r_factor(R))
+        if eig < WEAK_EIG:  # a valley: look from several starts (and check ambiguity)
+            z0s = problem.cast(make_starts(problem.spec, problem.z_init(), AUTO_STARTS))
+            solve, tc = compiled("solve", problem.spec, (z0s, data), **problem.static)
+            t_compile += tc
+            zs, codes, nsteps, costs, best, (R, r) = solve(z0s, data)
+            zs, codes, nsteps, costs, best = (np.asarray(a)
+                                              for a in (zs, codes, nsteps, costs, best))
+            note = (f"weakly identified at the first solution (correlation eigenvalue "
+                    f"{eig:.2g} < {WEAK_EIG:g}, along {', '.join(along)}): solved from "
+                    f"{AUTO_STARTS} starts to check for a valley or another minimum")
     starts = [{"params": user_values(problem.spec, zs[i], data.fixed), "cost": float(costs[i]),
                "status": start_status(int(codes[i]), zs[i], costs[i])}
               for i in range(len(costs))]
-    return _finish(problem, 0, zs[best], int(codes[best]), int(nsteps[best]), float(costs[best]),
-                   identifiability=identifiability, t_start=t_start, t_compile=t_compile,
-                   starts=starts, jr=(r_factor(R), np.asarray(r, dtype=np.float64)),
-                   alternatives=[(zs[i], float(costs[i])) for i in range(len(costs))
-                                 if i != best])
+    res = _finish(problem, 0, zs[best], int(codes[best]), int(nsteps[best]), float(costs[best]),
+                  identifiability=identifiability, t_start=t_start, t_compile=t_compile,
+                  starts=starts, jr=(r_factor(R), np.asarray(r, dtype=np.float64)),
+                  alternatives=[(zs[i], float(costs[i])) for i in range(len(costs))
+                                if i != best])
+    if note:
+        res.warnings.append(note)
+    return res
 
 
 def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
