@@ -50,6 +50,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--spp", type=int, default=4096)
     ap.add_argument("--case", default="env_plastic")
+    ap.add_argument("--variants", default="all", help="comma-separated labels, or all")
     a = ap.parse_args()
     spec = CASES[a.case]
     base = os.path.join(ROOT, "data_synthetic", a.case)
@@ -60,6 +61,8 @@ def main():
         ref = np.asarray(mitsuba.render(scene, m, m.full_params(p), spp=a.spp, seed=1))
         ref2 = np.asarray(mitsuba.render(scene, m, m.full_params(p), spp=a.spp, seed=2))
         for label, (edges, cell) in _variants().items():
+            if a.variants != "all" and label not in a.variants.split(","):
+                continue
             envlight.RING_EDGES, envlight.SUN_CELL = edges, cell
             envlight._tables.cache_clear()
             R._prepare.cache_clear()
