@@ -65,12 +65,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("fitter: interrupted", file=sys.stderr)
         return 130
     except FitterError as exc:
-        print(f"fitter: error: {exc}", file=sys.stderr)
+        print(f"fitter: error: {_printable(str(exc))}", file=sys.stderr)
         return EXIT_INPUT
     except OSError as exc:  # disk full, read-only or vanished folder: the machine, not fitter
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"fitter: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_INPUT
+
+
+def _printable(text: str) -> str:
+    """``text`` with control characters escaped: a key or path from a config
+    must not drive the user's terminal."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 _INTERRUPTED: list[int] = []  # signals received during this command

@@ -126,7 +126,8 @@ def load_config(path: str) -> Job:
     """Read and validate the TOML fit job at ``path``; raises ``ConfigError``."""
     try:
         with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+            text = fh.read().decode("utf-8-sig")  # editors on Windows write a BOM
+        data = tomllib.loads(text)
     except FileNotFoundError:
         raise ConfigError(f"{path}: config file not found") from None
     except IsADirectoryError:

@@ -180,3 +180,15 @@ def test_dielectric_bounces_are_capped_before_any_work(tmp_path, capsys):
     code, _, err = _run(capsys, "fit", path, "--out", tmp_path / "res")
     assert code == 2 and "dielectric.bounces" in err and "limit of 64" in err, err
     assert "Traceback" not in err and not (tmp_path / "res").exists()
+
+
+def test_a_bom_is_read_and_control_characters_are_not_echoed(tmp_path, capsys):
+    bom = tmp_path / "bom.toml"
+    bom.write_bytes(b"\xef\xbb\xbf[scene]\nwidth = 0\n")
+    code, _, err = _run(capsys, "fit", bom)
+    assert code == 2 and "scene.width" in err  # read past the BOM to the real mistake
+    ctl = tmp_path / "ctl.toml"
+    ctl.write_text('[scene]\n"wi\\u001b[31mdth" = 3\n')
+    code, _, err = _run(capsys, "fit", ctl)
+    assert code == 2 and "unknown key" in err
+    assert "\x1b" not in err and "\\x1b" in err
