@@ -65,6 +65,48 @@ _TAGS = {"BSDF": "bsdf", "Emitter": "emitter", "Film": "film", "Shape": "shape",
          "Sampler": "sampler", "Sensor": "sensor", "Texture": "texture", "PhaseFunction": "phase"}
 
 
+#: XML tag of every plugin type the translation writes (asked of Mitsuba only for others).
+_KNOWN_TAGS = {
+    **dict.fromkeys(("diffuse", "roughconductor", "conductor", "dielectric", "roughdielectric",
+                     "plastic", "roughplastic", "blendbsdf", "twosided"), "bsdf"),
+    **dict.fromkeys(("point", "directional", "constant", "envmap"), "emitter"),
+    **dict.fromkeys(("direct", "path", "volpath", "volpathmis", "prb"), "integrator"),
+    **dict.fromkeys(("perspective", "orthographic"), "sensor"),
+    "hdrfilm": "film", "box": "rfilter", "stratified": "sampler", "independent": "sampler",
+    "multijitter": "sampler", "sphere": "shape", "homogeneous": "medium",
+    "isotropic": "phase", "srgb": "texture", "bitmap": "texture",
+}
+
+
+class _Transform:
+    """A 4x4 NumPy stand-in for ``mi.ScalarTransform4f``: ``look_at``, ``scale``, ``@``
+    (Mitsuba 3's conventions), so scene.xml is written without importing Mitsuba."""
+
+    def __init__(self, matrix=None):
+        self.matrix = np.eye(4) if matrix is None else np.asarray(matrix, dtype=np.float64)
+
+    def look_at(self, origin, target, up):
+        o, t, u = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
+        d = (t - o) / np.linalg.norm(t - o)
+        left = np.cross(u, d)
+        left /= np.linalg.norm(left)
+        m = np.eye(4)
+        m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = left, np.cross(d, left), d, o
+        return _Transform(self.matrix @ m)
+
+    def scale(self, v):
+        return _Transform(self.matrix @ np.diag([*np.asarray(v, dtype=np.float64), 1.0]))
+
+    def __matmul__(self, other):
+        return _Transform(self.matrix @ other.matrix)
+
+
+class _NumpyMitsuba:
+    """What ``translate.scene_dict`` asks of the mitsuba module, in NumPy."""
+
+    ScalarTransform4f = _Transform
+
+
 def _num(x) -> str:
     return repr(float(x))
 
@@ -127,6 +169,12 @@ def plugin_types(d) -> list[str]:
 def _tag(mi, type_name: str) -> str:
     if type_name.startswith("fitter_"):  # Python plugins: every fitter plugin is a BSDF
         return "bsdf"
+    if type_name in _KNOWN_TAGS:
+        return _KNOWN_TAGS[type_name]
+    if mi is None:
+        from .variant import load
+
+        mi, _ = load(None)
     kind = str(mi.PluginManager.instance().plugin_type(type_name)).split(".")[-1]
     if kind not in _TAGS:
         raise MitsubaError(f"cannot write Mitsuba plugin type {type_name!r} ({kind}) as XML")
@@ -180,10 +228,9 @@ def _copy_beside(path: str, folder: str) -> str:
 
 
 def scene_xml(d: dict, folder: str) -> str:
-    """The XML text of scene dict ``d`` (files it reads copied into ``folder``)."""
-    from .variant import load
-
-    mi, _ = load(None)
+    """The XML text of scene dict ``d`` (files it reads copied into ``folder``).
+    Mitsuba is imported only for a plugin type ``_KNOWN_TAGS`` does not name."""
+    mi = None
     d = _stock(d)
     root = ET.Element("scene", version="3.0.0")
     for k, v in d.items():
@@ -205,7 +252,8 @@ def export_scene(path: str, scene: Scene, material: Material, params, *, spp: in
                  base_dir: str | None = None) -> list[str]:
     """Write ``path`` (scene.xml) for the fitted ``params``; returns the plugin types
     it needs (empty: stock Mitsuba loads it)."""
-    d = translate.scene_dict(scene, material, params, spp=spp, seed=seed, base_dir=base_dir)
+    d = translate.scene_dict(scene, material, params, spp=spp, seed=seed, base_dir=base_dir,
+                             mi=_NumpyMitsuba)
     folder = os.path.dirname(os.path.abspath(path))
     text = scene_xml(d, folder)
     with open(path, "w", encoding="utf-8") as fh:

@@ -151,16 +151,19 @@ def _emitters(scene: Scene, base_dir) -> dict:
 
 
 def scene_dict(scene: Scene, material: Material, params, *, spp: int, seed: int,
-               base_dir: str | None = None, variant: str | None = None) -> dict:
+               base_dir: str | None = None, variant: str | None = None, mi=None) -> dict:
     """Mitsuba 3 scene dict (for ``mi.load_dict``) equivalent to ``fitter.render``.
 
     Sets the Mitsuba variant (see ``fitter.mitsuba.choose_variant``) because
     the camera transform is a Mitsuba object; the Python plugins the dict
     names are registered by ``fitter.mitsuba.render`` before loading.
+    ``mi``: a stand-in for the mitsuba module (``fitter.mitsuba.export`` writes
+    scene.xml with a NumPy transform, without importing Mitsuba).
     """
-    from .variant import load
+    if mi is None:
+        from .variant import load
 
-    mi, _ = load(variant)
+        mi, _ = load(variant)
     check_translatable(scene, material)
     sphere = {"type": "sphere", "center": _vec(scene.sphere.center),
               "radius": float(scene.sphere.radius), "bsdf": bsdf_dict(material, params)}
