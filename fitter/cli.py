@@ -326,7 +326,8 @@ def cmd_fit(args) -> int:
     job = job.replace(fit=job.fit.replace(target=target_path))  # config.toml records it
     out = check_out(args.out or os.path.join("out", job.name))  # before any fitting
     enable_compilation_cache()
-    _import_in_background("matplotlib.figure", "matplotlib.backends.backend_agg", "colour")
+    _import_in_background("matplotlib.figure", "matplotlib.backends.backend_agg",
+                          *(("colour",) if job.fit.validate else ()))  # colour: metrics only
     with staged_dir(out) as tmp:
         outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
                                    stage=log.stage)
