@@ -40,10 +40,13 @@ def _lobes(mat: Material, truth):
                                                          for k, v in opts.items()}}), sub
 
 
+_DEFAULT = (envlight.RING_EDGES, envlight.SUN_CELL)
+
+
 def _variants():
-    full = envlight.RING_EDGES
+    full, cell = _DEFAULT
     half = np.concatenate([full[:-1:2], full[-1:]])
-    return {"default": (full, 1), "coarse rings": (half, 1), "sun half-texel": (full, 2)}
+    return {"default": (full, cell), "coarse rings": (half, cell), "sun cells halved": (full, 2 * cell)}
 
 
 def main():

@@ -231,8 +231,13 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
         order = np.argsort(~lit, axis=1, kind="stable")[:, :max(int(lit.sum(1).max()), 1)]
         e_dir = np.take_along_axis(e_dir, order[..., None], 1)
         e_c = np.take_along_axis(e_c, order[..., None], 1)
-        e_cos = Cosines(*cosines(np.broadcast_to(e_n[:, None], e_dir.shape), e_dir,
-                                 np.broadcast_to(e_v[:, None], e_dir.shape)))
+        e_cos = Cosines(*(np.empty(e_dir.shape[:2]) for _ in Cosines._fields))
+        for lo in range(0, e_dir.shape[0], 1024):  # in chunks: cache-sized temporaries
+            sl = slice(lo, lo + 1024)
+            part = cosines(np.broadcast_to(e_n[sl, None], e_dir[sl].shape), e_dir[sl],
+                           np.broadcast_to(e_v[sl, None], e_dir[sl].shape))
+            for dst, src in zip(e_cos, part):
+                dst[sl] = src
     else:
         rows, e_c = np.zeros(0, np.int64), np.zeros((0, 0, 3))
         e_cos = Cosines(*(np.zeros((0, 0)),) * 6)
