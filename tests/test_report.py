@@ -72,3 +72,15 @@ def test_a_short_report_keeps_its_full_font():
     fig = build_report(_outcome("solver tolerances met", []), "quickstart")
     assert _texts_inside(fig) == []
     assert fig.axes[-1].texts[0].get_fontsize() == 10
+
+
+def test_display_encoding_is_colour_sciences_srgb():
+    # The report writes the sRGB transfer function out (colour's import is slow);
+    # colour-science is the reference it must equal.
+    import colour
+
+    from fitter.imageio import linear_to_srgb
+
+    x = np.concatenate([np.linspace(-0.1, 1.2, 1301), [0.0031308, 0.0031309]])
+    expected = colour.cctf_encoding(np.clip(x, 0.0, 1.0), function="sRGB")
+    assert np.max(np.abs(linear_to_srgb(x) - expected)) < 1e-15
