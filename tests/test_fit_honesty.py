@@ -89,6 +89,21 @@ def test_exposure_scale_is_named():
     assert "exposure or light scale" in r.message, r.message
 
 
+def test_weak_direction_triggers_several_starts_without_being_asked():
+    """rho_s and eta trade (F0 scales the lobe like rho_s): one start asked, the
+    valley is found locally and the fit is re-solved from several starts."""
+    scene = fitter.Scene(width=32, height=32, supersampling=2, lights=LIGHTS)
+    truth = {"torrance_sparrow.m": 0.3, "torrance_sparrow.eta": 1.5,
+             "torrance_sparrow.rho_s": 0.8}
+    r = fitter.fit(np.asarray(fitter.render(truth, scene)), scene, "torrance_sparrow",
+                   init={"torrance_sparrow.rho_s": 0.5})
+    assert len(r.starts) == 4
+    assert any(w.startswith("weakly identified") and "torrance_sparrow.eta" in w
+               for w in r.warnings), r.warnings
+    assert not any("spatially structured" in w for w in r.warnings)  # rounding residual
+    np.testing.assert_allclose(r.params["torrance_sparrow.m"], 0.3, rtol=1e-6)
+
+
 @pytest.mark.parametrize("mean,mx,label", [
     (0.3, 1.0, "MITSUBA: NO VISIBLE DIFFERENCE"),
     (0.9, 6.7, "MITSUBA: VISIBLE DIFFERENCE"),  # issue 12: mean < 1 hid a max of 6.7

@@ -170,8 +170,11 @@ MODEL_FLOOR = 1e-3
 SCALE_SHARE = 0.8
 #: Starts whose final costs are within this relative gap of the best agree.
 STARTS_AGREE = 1e-2
-#: stderr_sys / stderr_stat above this gets a warning.
+#: stderr_sys / stderr_stat above this gets a warning, when the residual RMSE is
+#: at least SYS_WARN_LEVEL of the noise level (rounding residuals of a
+#: noise-free inverse-crime fit, ~1e-10 of it, are structured but say nothing).
 SYS_WARN = 3.0
+SYS_WARN_LEVEL = 0.1
 
 
 def where(adequacy: dict) -> str:

@@ -143,7 +143,9 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
     if failing:
         message = f"{message}: {_adequacy.cause(err, model, used, adequacy, starts)}"
     sys_ratio = np.max(sd_sys / np.maximum(sd_stat, 1e-300)) if sd.size else 0.0
-    if status == "converged" and sys_ratio > _adequacy.SYS_WARN:
+    # (A residual of rounding alone, far below the noise, is structured but says nothing.)
+    if (status == "converged" and sys_ratio > _adequacy.SYS_WARN
+            and ratio > _adequacy.SYS_WARN_LEVEL):
         warnings.append(f"the residual is spatially structured ({_adequacy.where(adequacy)}): "
                         "the stated errors include a systematic part up to "
                         f"{sys_ratio:.3g} times the statistical one (stderr_sys, stderr_stat)")
