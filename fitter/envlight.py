@@ -17,8 +17,11 @@ radiance L is the bilinearly interpolated latitude-longitude map
 * **Sky stencil.** The rest (the map with the sun texels filled in) is
   integrated per *env sample* over a fixed stencil of ``N`` cells: rings
   about the sample's mirror direction r = reflect(wo, n), narrow near r
-  (``RING_EDGES``: 0.015 rad first ring) so that sharp lobes (m >= 0.05,
-  Phong e <= 500) are resolved, wide far away where only broad lobes reach.
+  (``RING_EDGES``: 0.006 rad first ring, up to ``MAX_PHI`` sectors a ring;
+  ~690 cells), wide far away where only broad lobes reach. Against a
+  brute-force hemisphere quadrature (``tests/test_envlight_reference.py``):
+  Beckmann m = 0.1 within 0.7 % and m = 0.25 within 0.4 % for theta_o <= 84
+  degrees (m = 0.1: -3 % at 87, -17 % at 89), normalised Phong e = 300 0.2 %.
   Per cell, ``STENCIL_SUB`` x ``STENCIL_SUB`` sub-cells look up a
   solid-angle-prefiltered pyramid of the map at their own size, giving
   c = int_cell L max(cos_i, 0) dw (RGB) and the direction of the cell's
@@ -28,8 +31,9 @@ radiance L is the bilinearly interpolated latitude-longitude map
   measured in ``benchmarks/envlight.py``.
 
 Env samples are the pixel centres of pixels wholly on the sphere and every
-hitting sub-pixel sample of silhouette pixels (weighted by its quadrature
-weight): the sky term is smooth across the sphere, while the sun's highlight
+hitting sub-pixel sample of silhouette pixels and of limb pixels
+(``geometry.ENV_LIMB_COS``), weighted by its quadrature weight: the sky term
+is smooth across the sphere but for the limb, while the sun's highlight
 (sharp) gets the scene's full supersampling through the sun lights.
 """
 
