@@ -269,3 +269,20 @@ def test_shape_grad_matches_autodiff(name, opts):
                                        err_msg=f"d shape / d {k} at {params}")
 
     check()
+
+
+@pytest.mark.parametrize("fresnel", ["dielectric", "conductor"])
+@pytest.mark.parametrize("geometry", ["v_groove", "smith"])
+def test_torrance_sparrow_gradient_finite_at_retro_grazing(fresnel, geometry):
+    # Found by hypothesis: light and view 1e-150 above opposite horizons, m = 1e-3,
+    # made the value ~2e305 and its m-derivative overflow to NaN.
+    opts = {"fresnel": fresnel, "geometry": geometry}
+    params = {p.name: (0.001 if p.name == "m" else p.lower) for p in
+              LOBES["torrance_sparrow"].params_for(opts)}
+    params["rho_s"] = 1.0
+    pairs = (np.array([[1.0, 0.0, 1e-150]]), np.array([[-1.0, 0.0, 1e-150]]))
+    fn = _eval_grad("torrance_sparrow", tuple(sorted(opts.items())))
+    p = {k: jnp.asarray(v, dtype=jnp.float64) for k, v in params.items()}
+    value, grad = fn(p, jnp.asarray(pairs[0]), jnp.asarray(pairs[1]))
+    assert np.isfinite(float(value))
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in grad.values()), grad

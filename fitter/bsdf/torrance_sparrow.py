@@ -58,6 +58,16 @@ def _fresnel(p, opts, cos_d):
     return f, {"eta": d_eta}
 
 
+#: Floor of cos_i cos_o in the denominator. Directions within ~1e-10 rad of the
+#: horizon (no pixel integral sees them) otherwise give values near the float64
+#: limit and infinite derivatives in m (hypothesis: cos_i = cos_o = 1e-150).
+MIN_COS_PRODUCT = 1e-20
+
+
+def _denominator(ci, co):
+    return jnp.pi * jnp.maximum(ci * co, MIN_COS_PRODUCT)
+
+
 def _shape(p, opts, c):
     ci, co, m = c.cos_i, c.cos_o, p["m"]
     ok = (ci > 0) & (co > 0)
@@ -68,9 +78,9 @@ def _shape(p, opts, c):
         g = g_v_groove(c.cos_h, ci, co, c.cos_d)
     if opts.get("fresnel", "dielectric") == "conductor":
         f = fresnel_conductor(jnp.clip(c.cos_d, 0.0, 1.0)[..., None], p["eta"], p["k"])
-        return safe_div(d * g, jnp.pi * ci * co, ok)[..., None] * f
+        return safe_div(d * g, _denominator(ci, co), ok)[..., None] * f
     f = fresnel_dielectric(jnp.clip(c.cos_d, 0.0, 1.0), p["eta"])
-    return safe_div(d * g * f, jnp.pi * ci * co, ok)
+    return safe_div(d * g * f, _denominator(ci, co), ok)
 
 
 def _shape_grad(p, opts, c):
@@ -86,7 +96,7 @@ def _shape_grad(p, opts, c):
         g, dg = g_i * g_o, dg_i * g_o + g_i * dg_o
     else:
         g, dg = g_v_groove(c.cos_h, ci, co, c.cos_d), 0.0
-    base = safe_div(d, jnp.pi * ci * co, ok)
+    base = safe_div(d, _denominator(ci, co), ok)
     if jnp.ndim(f) > jnp.ndim(base):  # RGB Fresnel: colour axis last
         base, g, dg = base[..., None], jnp.asarray(g)[..., None], jnp.asarray(dg)[..., None]
         dlog_d = dlog_d[..., None]
