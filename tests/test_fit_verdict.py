@@ -40,7 +40,7 @@ def test_noise_free_target_of_a_finer_discretisation_converges():
     np.testing.assert_allclose(r.params["mirror.rho_m"], truth["mirror.rho_m"], rtol=1e-4)
 
 
-@pytest.mark.slow
+@pytest.mark.heavy  # ~30-70 s on 2 cores: run with `pytest -m heavy`
 def test_large_noise_free_target_converges():
     """512^2, supersampling 8 target, 4 fitted: every parameter within 2e-6,
     Immerkaer estimate 7e-6 (its curvature term falls as 1/size^2), residual
