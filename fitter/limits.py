@@ -23,6 +23,10 @@ MAX_SPP = 1 << 16
 #: Fit memory: fixed part and bytes per film sample (see the module docstring).
 BASE_BYTES = 0.6e9
 BYTES_PER_SAMPLE = 350.0
+#: Extra fit memory per pixel when an environment lights opaque lobes (its
+#: per-pixel cell stencil, ``fitter.envlight``): peak RSS 4.5-7.6 GB at 128^2
+#: (env_plastic, env_point), i.e. up to 4.6e5 bytes a pixel.
+ENV_BYTES_PER_PIXEL = 4.6e5
 #: Share of the machine's available memory a fit may plan to use.
 MEMORY_SHARE = 0.8
 
@@ -31,9 +35,11 @@ class ResourceError(FitterError):
     """A request larger than this machine or the documented limits allow."""
 
 
-def fit_bytes(width: int, height: int, supersampling: int) -> float:
-    """Estimated peak memory (bytes) of a fit at this film size."""
-    return BASE_BYTES + BYTES_PER_SAMPLE * width * height * supersampling ** 2
+def fit_bytes(width: int, height: int, supersampling: int, env_lit: bool = False) -> float:
+    """Estimated peak memory (bytes) of a fit at this film size (``env_lit``: an
+    environment lights opaque lobes)."""
+    return (BASE_BYTES + BYTES_PER_SAMPLE * width * height * supersampling ** 2
+            + (ENV_BYTES_PER_PIXEL * width * height if env_lit else 0.0))
 
 
 def available_bytes() -> float | None:
@@ -52,7 +58,7 @@ def available_bytes() -> float | None:
 
 
 def check_fit(width: int, height: int, supersampling: int, n_starts: int,
-              where: str = "") -> None:
+              where: str = "", env_lit: bool = False) -> None:
     """Raise ``ResourceError`` if a fit of this size cannot run here.
 
     ``where`` prefixes the message (a config path, or "" for the Python API).
@@ -65,11 +71,12 @@ def check_fit(width: int, height: int, supersampling: int, n_starts: int,
         raise ResourceError(f"{at}scene.supersampling = {supersampling} is over the limit of "
                             f"{MAX_SUPERSAMPLING} (that is {MAX_SUPERSAMPLING ** 2} samples a "
                             "pixel); 4 is enough for smooth lobes")
-    need = fit_bytes(width, height, supersampling)
+    need = fit_bytes(width, height, supersampling, env_lit)
     have = available_bytes()
     if have is not None and need > MEMORY_SHARE * have:
         raise ResourceError(
-            f"{at}a {width}x{height} fit at scene.supersampling = {supersampling} needs about "
+            f"{at}a {width}x{height} fit at scene.supersampling = {supersampling}"
+            f"{' lit by its environment' if env_lit else ''} needs about "
             f"{need / 1e9:.1f} GB of memory and this machine has {have / 1e9:.1f} GB "
             "available; lower scene.supersampling or the image size (or crop the image to "
             "the sphere)")

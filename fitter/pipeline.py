@@ -173,7 +173,10 @@ def preflight(job: Job) -> None:
     reason = unlit(s, job.material)
     if reason:
         raise ConfigError(f"{job.path}: {reason}")
-    limits.check_fit(s.width, s.height, s.supersampling, job.fit.n_starts, where=job.path)
+    env_lit = s.environment.type != "black" and any(
+        lb.kind == "brdf" for lb in job.material.lobe_objects)
+    limits.check_fit(s.width, s.height, s.supersampling, job.fit.n_starts, where=job.path,
+                     env_lit=env_lit)
     if job.fit.validate:
         limits.check_spp(job.fit.validate_spp, "fit.validate_spp", where=job.path)
 

@@ -73,6 +73,11 @@ def test_supersampling_and_memory_are_checked_with_an_estimate(tmp_path):
         with pytest.raises(limits.ResourceError, match=r"needs about \d+\.\d GB"):
             limits.check_fit(4096, 4096, 4, 1, where="job.toml")
     limits.check_fit(128, 128, 4, 8)  # the quickstart fits anywhere
+    # An environment lighting opaque lobes costs ~0.46 MB a pixel more (measured 7.6 GB
+    # peak at 128^2): 1024^2 would need ~480 GB and is refused, not OOM-killed.
+    assert limits.fit_bytes(1024, 1024, 4, env_lit=True) > 400e9
+    with pytest.raises(limits.ResourceError, match="lit by its environment"):
+        limits.check_fit(1024, 1024, 4, 1, where="job.toml", env_lit=True)
 
 
 def test_synth_and_validate_spp_are_capped(small, tmp_path, capsys):
