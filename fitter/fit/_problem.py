@@ -99,7 +99,7 @@ def _cauchy_factor(u2):
 #: Robust losses by name: 2 rho(u) / u^2 of the scaled residual u = r / c.
 _ROBUST_FACTORS = {"huber": _huber_factor, "cauchy": _cauchy_factor}
 
-#: Names accepted by ``fitter.fit(loss=...)``.
+# The registry implements exactly the names the config reader accepts.
 assert ("l2", *_ROBUST_FACTORS) == LOSSES, "fitter.fit._names.LOSSES lists the losses"
 
 

@@ -44,7 +44,7 @@ _MAKERS = {
                                                    rtol=rtol, atol=atol),
 }
 
-#: Names accepted by ``fitter.fit(solver=...)``.
+# The registry implements exactly the names the config reader accepts.
 assert tuple(_MAKERS) == SOLVERS, "fitter.fit._names.SOLVERS lists the solvers"
 
 #: Default step budgets of the solvers that need more than ``DEFAULT_MAX_STEPS``.
