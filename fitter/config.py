@@ -19,6 +19,7 @@ import os
 import tomllib
 from typing import Any, Mapping
 
+from . import checks
 from .fit import LOSSES, SOLVERS
 from .material import Material
 from .scene import Scene, resolve_path
@@ -36,7 +37,6 @@ from .serialize import (  # the table readers and writers; re-exported for cli.p
     synth_to_dict,
 )
 
-DTYPES = ("float64", "float32")
 MASKS = ("interior", "active")
 
 
@@ -174,24 +174,18 @@ def _fit_from_dict(r: Reader, tbl: dict, base_dir: str) -> FitOptions:
     target = None
     if "target" in tbl:
         target = resolve_path(r.string(tbl["target"], "fit.target"), base_dir)
-    noise = tbl.get("noise_sigma")
-    sat = tbl.get("saturation")
-    steps, rtol, atol = tbl.get("max_steps"), tbl.get("rtol"), tbl.get("atol")
+
+    def rule(name):  # checks.FIT_RULES: the same rule as fitter.fit's keyword
+        value = tbl.get(name, getattr(d, name))
+        return None if value is None else r.check(checks.fit_option, name, f"fit.{name}",
+                                                  value)
+
     return FitOptions(
         target=target,
         solver=r.choice(tbl.get("solver", d.solver), "fit.solver", solvers()),
-        n_starts=r.integer(tbl.get("n_starts", d.n_starts), "fit.n_starts", lo=1),
-        max_steps=None if steps is None else r.integer(steps, "fit.max_steps", lo=1),
-        rtol=None if rtol is None else r.number(rtol, "fit.rtol", lo=0.0, lo_open=True),
-        atol=None if atol is None else r.number(atol, "fit.atol", lo=0.0, lo_open=True),
         mask=r.choice(tbl.get("mask", d.mask), "fit.mask", MASKS),
-        noise_sigma=None if noise is None else r.number(noise, "fit.noise_sigma", lo=0.0,
-                                                        lo_open=True),
         loss=r.choice(tbl.get("loss", d.loss), "fit.loss", LOSSES),
-        validate=r.boolean(tbl.get("validate", d.validate), "fit.validate"),
-        validate_spp=r.integer(tbl.get("validate_spp", d.validate_spp), "fit.validate_spp",
-                               lo=1),
-        saturation=None if sat is None else r.number(sat, "fit.saturation", lo=0.0,
-                                                     lo_open=True),
-        dtype=r.choice(tbl.get("dtype", d.dtype), "fit.dtype", DTYPES),
+        **{name: rule(name) for name in ("n_starts", "max_steps", "rtol", "atol",
+                                         "noise_sigma", "validate", "validate_spp",
+                                         "saturation", "dtype")},
     )
