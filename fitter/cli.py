@@ -359,7 +359,7 @@ def _print_summary(outcome, out: str) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from .report import fmt
+    from .report import fmt, stated_error
 
     res = outcome.fit
     table = Table(title=f"[{'green' if res.converged else 'red'}]{res.status}[/] "
@@ -371,13 +371,7 @@ def _print_summary(outcome, out: str) -> None:
         table.add_column("truth")
         table.add_column("|error|")
     for key, value in res.params.items():
-        if key in res.unidentifiable:
-            err = "unidentifiable"
-        elif key in res.stderr:
-            err = fmt(res.stderr[key], ".2g")
-        else:
-            err = "fixed"
-        row = [key, fmt(value), err]
+        row = [key, fmt(value), stated_error(res, key, ".2g")]
         if outcome.truth_error:
             te = outcome.truth_error.get(key)
             row += [fmt(te.truth), fmt(te.abs, ".2g")] if te else ["", ""]

@@ -277,6 +277,12 @@ def _tables():
 _tables = functools.cache(_tables)  # built on first use (~0.1 s), not at import
 
 
+def lit_by_environment(scene, material) -> bool:
+    """Whether the scene's environment lights some opaque (brdf) lobe of ``material``."""
+    return scene.environment.type != "black" and any(
+        lb.kind == "brdf" for lb in material.lobe_objects)
+
+
 def unlit(scene, material) -> str | None:
     """Why the material's opaque lobes get no light in ``scene`` (naming the keys), or None."""
     opaque = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]

@@ -166,17 +166,15 @@ def preflight(job: Job) -> None:
     """Refuse, before any work, a job over the limits of ``fitter.limits``."""
     from . import limits
 
-    from .envlight import unlit
+    from .envlight import lit_by_environment, unlit
     from .serialize import ConfigError
 
     s = job.scene
     reason = unlit(s, job.material)
     if reason:
         raise ConfigError(f"{job.path}: {reason}")
-    env_lit = s.environment.type != "black" and any(
-        lb.kind == "brdf" for lb in job.material.lobe_objects)
     limits.check_fit(s.width, s.height, s.supersampling, job.fit.n_starts, where=job.path,
-                     env_lit=env_lit)
+                     env_lit=lit_by_environment(s, job.material))
     if job.fit.validate:
         limits.check_spp(job.fit.validate_spp, "fit.validate_spp", where=job.path)
 

@@ -186,12 +186,7 @@ def _param_table(ax, outcome: Outcome) -> None:
                                               if truth else [])
     rows, colours = [], []
     for key, value in res.params.items():
-        if key in res.unidentifiable:
-            err = "unidentifiable (see warnings)"
-        elif key in res.stderr:
-            err = fmt(res.stderr[key], ".4g")
-        else:
-            err = "fixed"
+        err = stated_error(res, key, ".4g", "unidentifiable (see warnings)")
         row = [key, f"{fmt(value, '.4g')} ± {err}" if key in res.stderr
                else f"{fmt(value, '.4g')} ({err})"]
         colour = "white"
@@ -279,6 +274,13 @@ def _fit_inside(text, ax) -> None:
         text.set_text("\n".join(lines))
     if not _inside(text.get_window_extent(renderer), ax, renderer):  # one line, too wide
         text.set_text(text.get_text()[:60] + "...")
+
+def stated_error(res, key: str, spec: str, unidentifiable: str = "unidentifiable") -> str:
+    """A parameter's error column: its stderr, or why it has none (unidentifiable, fixed)."""
+    if key in res.unidentifiable:
+        return unidentifiable
+    return fmt(res.stderr[key], spec) if key in res.stderr else "fixed"
+
 
 def fmt(value, spec: str = ".5g") -> str:
     """A number, an array or a list of numbers as text; "n/a" for None or NaN."""
