@@ -61,23 +61,22 @@ def test_oversize_fit_options_are_refused_before_any_work(tmp_path, capsys, key,
     assert not [n for n in os.listdir(tmp_path) if n.startswith(".res")]
 
 
-def test_supersampling_and_memory_are_checked_with_an_estimate(tmp_path):
+def test_supersampling_and_memory_are_checked_with_an_estimate(monkeypatch):
     with pytest.raises(limits.ResourceError, match="scene.supersampling = 100"):
         limits.check_fit(32, 32, 100, 1)
-    # 4096^2 x 4^2 samples: about 94 GB by the measured model, more than any CI machine.
-    need = limits.fit_bytes(4096, 4096, 4)
-    assert need > 90e9
     have = limits.available_bytes()
-    assert have is not None and have > 0
-    if need > limits.MEMORY_SHARE * have:
-        with pytest.raises(limits.ResourceError, match=r"needs about \d+\.\d GB"):
-            limits.check_fit(4096, 4096, 4, 1, where="job.toml")
-    limits.check_fit(128, 128, 4, 8)  # the quickstart fits anywhere
+    assert have is not None and have > 0  # read from the kernel here
+    # On a machine with 24 GB free (CI's size): 4096^2 x 4^2 samples is ~94 GB by the
+    # measured model and refused; the quickstart's 128^2 passes.
+    monkeypatch.setattr(limits, "available_bytes", lambda: 24e9)
+    with pytest.raises(limits.ResourceError, match=r"needs about 94\.\d GB .* 24\.0 GB"):
+        limits.check_fit(4096, 4096, 4, 1, where="job.toml")
+    limits.check_fit(128, 128, 4, 8)
     # An environment lighting opaque lobes costs ~0.46 MB a pixel more (measured 7.6 GB
-    # peak at 128^2): 1024^2 would need ~480 GB and is refused, not OOM-killed.
-    assert limits.fit_bytes(1024, 1024, 4, env_lit=True) > 400e9
+    # peak at 128^2): 256^2 then needs ~31 GB and is refused, not OOM-killed.
+    limits.check_fit(256, 256, 4, 1)
     with pytest.raises(limits.ResourceError, match="lit by its environment"):
-        limits.check_fit(1024, 1024, 4, 1, where="job.toml", env_lit=True)
+        limits.check_fit(256, 256, 4, 1, where="job.toml", env_lit=True)
 
 
 def test_synth_and_validate_spp_are_capped(small, tmp_path, capsys):
