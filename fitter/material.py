@@ -4,6 +4,13 @@ Parameters are addressed as ``"lobe.param"`` (``"lambert.rho_d"``,
 ``"torrance_sparrow.m"``). A parameter of a named lobe that is not given takes
 the lobe's documented default. RGB parameters accept a scalar (grey) or three
 values.
+
+One parameter belongs to no lobe: ``"exposure"`` (``EXPOSURE``), a camera
+exposure / light scale multiplying the whole rendered radiance. A material has
+it only when asked (``Material.make(..., exposure=True)``; a config or a fit
+naming ``exposure`` in its truth, init or fixed values), so a material without
+it renders and fits exactly as before. Like ``torrance_sparrow.rho_s`` it is
+fixed by default (at 1) and freed by giving it an initial value.
 """
 
 from __future__ import annotations
@@ -23,6 +30,16 @@ class MaterialError(FitterError):
     """A material or parameter specification a user must fix (message names the key)."""
 
 
+#: The key of the exposure parameter (no lobe's: it scales the whole image).
+EXPOSURE_KEY = "exposure"
+#: Camera exposure / light scale: the rendered radiance (lights, environment and
+#: background alike) times this scalar. Fixed at 1 unless given an initial value.
+#: Box [1e-3, 1e3], fitted in log: an unknown scale may be off by decades.
+EXPOSURE = Param(EXPOSURE_KEY, 1, 1.0, 1e-3, 1e3, "log",
+                 "camera exposure / light scale: multiplies the whole rendered radiance "
+                 "(lights, environment, background)", free=False)
+
+
 @dataclasses.dataclass(frozen=True)
 class Material:
     """Names of the summed lobes and their (static) options.
@@ -31,13 +48,17 @@ class Material:
         lobes: lobe names, e.g. ``("lambert", "torrance_sparrow")``.
         options: sorted ``(("lobe.option", value), ...)`` pairs; missing ones
             take the lobe's default. Build with ``Material.make``.
+        exposure: whether the parameters include ``"exposure"`` (``EXPOSURE``),
+            which multiplies the whole rendered radiance.
     """
 
     lobes: tuple[str, ...]
     options: tuple[tuple[str, Any], ...] = ()
+    exposure: bool = False
 
     @classmethod
-    def make(cls, lobes, options: Mapping[str, Any] | None = None) -> "Material":
+    def make(cls, lobes, options: Mapping[str, Any] | None = None,
+             exposure: bool = False) -> "Material":
         if isinstance(lobes, str):
             lobes = tuple(s.strip() for s in lobes.split("+"))
         if not isinstance(lobes, (list, tuple)):
@@ -71,7 +92,11 @@ class Material:
                 raise MaterialError(f"{key} = {value!r}: allowed values are "
                                     + ", ".join(repr(c) for c in spec.choices))
             full[key] = value
-        return cls(lobes, tuple(sorted(full.items())))
+        return cls(lobes, tuple(sorted(full.items())), bool(exposure))
+
+    def with_exposure(self) -> "Material":
+        """This material with the ``exposure`` parameter (itself if it has it)."""
+        return self if self.exposure else dataclasses.replace(self, exposure=True)
 
     @property
     def lobe_objects(self) -> tuple[Lobe, ...]:
@@ -82,9 +107,13 @@ class Material:
 
     def param_specs(self) -> dict[str, Param]:
         """``{"lobe.param": Param}`` for every parameter of every lobe, in order
-        (as the material's options select them: ``Lobe.params_for``)."""
-        return {f"{n}.{p.name}": p for n in self.lobes
-                for p in LOBES[n].params_for(self.options_of(n))}
+        (as the material's options select them: ``Lobe.params_for``), then
+        ``"exposure"`` if the material has it."""
+        specs = {f"{n}.{p.name}": p for n in self.lobes
+                 for p in LOBES[n].params_for(self.options_of(n))}
+        if self.exposure:
+            specs[EXPOSURE_KEY] = EXPOSURE
+        return specs
 
     def option_keys(self) -> set[str]:
         return {k for k, _ in self.options}
@@ -104,9 +133,12 @@ class Material:
             if key in self.option_keys():
                 continue
             if key not in specs:
+                hint = ("; a material has it when it is named in the truth, init or fixed "
+                        "values (Material.make(..., exposure=True))"
+                        if key == EXPOSURE_KEY else "")
                 raise MaterialError(
                     f"unknown parameter {key!r} for lobes {list(self.lobes)}; known: "
-                    + ", ".join(specs))
+                    + ", ".join(specs) + hint)
             spec = specs[key]
             try:
                 arr = np.asarray(value)
@@ -130,16 +162,19 @@ class Material:
 
     @classmethod
     def from_params(cls, params: Mapping[str, Any]) -> "Material":
-        """Infer the material from ``"lobe.x"`` keys; string/bool values are options."""
+        """Infer the material from ``"lobe.x"`` keys; string/bool values are options;
+        an ``"exposure"`` key gives it the exposure."""
         lobes, options = [], {}
         for key, value in params.items():
+            if key == EXPOSURE_KEY:
+                continue
             lobe = key.split(".", 1)[0]
             if lobe not in lobes:
                 lobes.append(lobe)
             if isinstance(value, (str, bool)) or (
                     lobe in LOBES and _is_option(lobe, key.split(".", 1)[-1])):
                 options[key] = value
-        return cls.make(lobes, options)
+        return cls.make(lobes, options, exposure=EXPOSURE_KEY in params)
 
 
 def _is_option(lobe: str, name: str) -> bool:

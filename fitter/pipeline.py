@@ -206,7 +206,7 @@ def render_params(job: Job, params: Mapping[str, Any]) -> np.ndarray:
     import jax.numpy as jnp
 
     from .fit._cache import compile_cached
-    from .render import cached_renderer, render_active
+    from .render import cached_renderer, exposed_background, render_active
 
     material, scene = job.material, job.scene
     full = job.material.full_params(params)
@@ -223,7 +223,7 @@ def render_params(job: Job, params: Mapping[str, Any]) -> np.ndarray:
     shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), str(jnp.result_type(a))), args)
     exe = compile_cached(active, args, repr(("render_active", material, env_type, str(shapes))))
     vals = np.asarray(exe(*args))
-    img = np.array(rend.geometry.background_image)
+    img = np.array(exposed_background(material, p, rend.geometry.background_image))
     img[np.asarray(rend.pixel_index)] = vals
     return img.reshape(scene.height, scene.width, 3)
 

@@ -31,7 +31,7 @@ from ._modules import make_callable
 from .bsdf.base import SurfaceHit
 from .environment import EnvData, load_environment, lookup
 from .geometry import Geometry, build_geometry
-from .material import Material, MaterialError, lobe_params
+from .material import EXPOSURE_KEY, Material, MaterialError, lobe_params
 from .scene import Scene, SceneError
 
 
@@ -182,7 +182,8 @@ def render_active(params, geo: Geometry, env: EnvData, sphere, *, material, env_
     BRDF lobes: reflectance * (sum over lights and sub-pixel samples of the
     lobe's shape * weight * light colour), exact by linearity and cheap to
     differentiate in the reflectance. Specular lobes: weighted sum of their
-    radiance over the samples that hit.
+    radiance over the samples that hit. A material with an exposure
+    (``Material.exposure``) multiplies the whole sum by ``params["exposure"]``.
     """
     value = geo.background
     for lobe in material.lobe_objects:
@@ -195,7 +196,16 @@ def render_active(params, geo: Geometry, env: EnvData, sphere, *, material, env_
                 value = value + p[lobe.scale] * _env_unit(lobe, p, opts, geo)
         else:
             value = value + _specular(lobe, p, opts, geo, env, sphere, env_type)
+    if material.exposure:  # static: a material without it traces exactly as before
+        value = value * params[EXPOSURE_KEY]
     return value
+
+
+def exposed_background(material: Material, params, background_image):
+    """The (H*W, 3) image without the sphere, times the exposure if the material has one."""
+    if not material.exposure:
+        return background_image
+    return background_image * params[EXPOSURE_KEY]
 
 
 class Renderer:
@@ -231,9 +241,12 @@ class Renderer:
 
     def image(self, params: Mapping[str, Any]):
         """The full (H, W, 3) image."""
-        vals = self.active(params)
+        full = self.params(params)
+        vals = render_active(full, self.geometry, self.env, self.sphere,
+                             material=self.material, env_type=self.env_type)
         s = self.scene
-        img = self.geometry.background_image.at[self.geometry.pixel_index].set(vals)
+        img = exposed_background(self.material, full, self.geometry.background_image)
+        img = img.at[self.geometry.pixel_index].set(vals)
         return img.reshape(s.height, s.width, 3)
 
 
@@ -271,7 +284,8 @@ def render(params: Mapping[str, Any], scene: Scene, material: Material | None = 
 
     ``material`` defaults to the lobes named by the keys of ``params`` (string
     and bool values there are lobe options, e.g. ``"torrance_sparrow.geometry":
-    "smith"``). Differentiable in the numeric values; the prepared scene is
+    "smith"``); an ``"exposure"`` value multiplies the whole image, background
+    included (``fitter.material.EXPOSURE``). Differentiable in the numeric values; the prepared scene is
     cached, so repeated calls only pay for the BSDF evaluation. A concrete
     value outside its lobe's box (NaN, m <= 0, rho > 1, ...) is a
     ``MaterialError`` naming the key and the range (``complete_params``); a
@@ -286,6 +300,8 @@ def render(params: Mapping[str, Any], scene: Scene, material: Material | None = 
         material = Material.from_params(params)
     elif not isinstance(material, Material):
         material = Material.make(material)
+    if EXPOSURE_KEY in params:
+        material = material.with_exposure()
     numeric = {k: v for k, v in params.items() if k not in material.option_keys()}
     base_dir = os.path.abspath(base_dir) if base_dir else None
     return cached_renderer(scene, material, jnp.dtype(dtype), base_dir).image(numeric)

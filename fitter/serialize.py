@@ -36,7 +36,7 @@ import numpy as np
 from . import checks
 from .bsdf import LOBES
 from .errors import FitterError
-from .material import Material, MaterialError
+from .material import EXPOSURE_KEY, Material, MaterialError
 from .scene import (CAMERA_TYPES, ENVIRONMENT_TYPES, LIGHT_TYPES, Camera, DirectionalLight,
                     Environment, PointLight, Scene, SceneError, Sphere, check_scene,
                     resolve_path)
@@ -258,6 +258,8 @@ def material_to_dict(material: Material, truth=None, init=None, fixed=None) -> d
     out: dict[str, Any] = {"lobes": list(material.lobes)}
     fixed_all = {k: v for k, v in material.options}
     fixed_all.update(_listed(fixed or {}))
+    if material.exposure and not any(EXPOSURE_KEY in (v or {}) for v in (truth, init, fixed)):
+        fixed_all[EXPOSURE_KEY] = 1.0  # the material keeps its exposure when read back
     for name, values in (("truth", truth), ("init", init)):
         if values:
             out[name] = _listed(values)
@@ -297,8 +299,9 @@ def material_from_dict(data: Mapping[str, Any], path: str = "<material>"):
             if key in options and options[key] != value:
                 raise r.error(f"material.fixed.{key}", "conflicts with material.options")
             options[key] = value
+    exposure = any(EXPOSURE_KEY in tables[n] for n in ("truth", "init", "fixed"))
     try:
-        material = Material.make(lobes, options)
+        material = Material.make(lobes, options, exposure=exposure)
     except MaterialError as exc:
         raise r.error("material", str(exc)) from None
     truth = _values(r, material, tables["truth"], "material.truth", allow_options=True)

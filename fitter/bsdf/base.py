@@ -29,7 +29,9 @@ A lobe is one of two kinds:
 * ``"specular"``: a delta lobe (mirror, smooth dielectric) that only sees the
   environment; ``radiance(p, opts, hit, env) -> (..., 3)`` returns the
   outgoing radiance towards the camera (``hit``: a ``SurfaceHit``; ``env``: a
-  callable direction (..., 3) -> RGB radiance (..., 3)).
+  callable direction (..., 3) -> RGB radiance (..., 3)). Its ``scale``, if
+  any, names a parameter the radiance is linear in (mirror's ``rho_m``); the
+  renderer does not use it, the exposure's degeneracy check does.
 
 Lobes add (the lecture's linearity of BRDFs). Adding a lobe is one module
 defining ``LOBE = Lobe(...)`` plus one entry in ``fitter.bsdf.registry``: the

@@ -27,6 +27,7 @@ LOBE = Lobe(
     name="mirror",
     kind="specular",
     params=(Param("rho_m", 3, 1.0, 0.0, 1.0, "logit", "mirror reflectance"),),
+    scale="rho_m",  # the radiance is linear in it (the exposure check's reflectance scale)
     radiance=_radiance,
     doc="ρ_m L_env(reflected direction)",
     mitsuba=MitsubaMapping(_mitsuba, max_depth=lambda opts: MITSUBA_DEPTH),

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..material import Material
+from ..material import EXPOSURE_KEY, Material
 from ..render import Renderer, cached_renderer
 from .. import checks
 from . import _args
@@ -151,6 +151,31 @@ def _no_pixels(renderer: Renderer, mask, n_dropped: int, saturation) -> FitError
     return FitError("no pixels to fit: mask selects no pixel the sphere covers; check mask")
 
 
+def _exposure_degenerate(material: Material, blocks, background) -> FitError | None:
+    """The error of a free exposure the image cannot tell from the lobes' scales.
+
+    Exact degeneracy: every lobe's radiance is linear in a free scale
+    (``Lobe.scale``: a reflectance, mirror.rho_m), so exposure * c and every
+    scale / c render the same image, unless a fitted pixel shows light of known
+    absolute scale -- the environment behind the rim (``background`` (P, 3) of
+    the fitted pixels). A weaker trade (a fixed-scale specular lobe whose
+    Fresnel eta can brighten it) is left to the identifiability checks.
+    """
+    free = {b.key for b in blocks}
+    if EXPOSURE_KEY not in free:
+        return None
+    scales = [f"{lb.name}.{lb.scale}" if lb.scale else None for lb in material.lobe_objects]
+    if not all(k in free for k in scales) or np.any(np.asarray(background) != 0):
+        return None
+    names = ", ".join(scales)
+    return FitError(
+        f"exposure is free, but so is every lobe's brightness scale ({names}), so the image "
+        "fixes only their products (exposure x c with each scale / c renders the same image) "
+        f"and no fitted pixel has a known absolute scale: fix {names if len(scales) == 1 else 'one of ' + names} "
+        "at a known value (a reference such as a measured white patch) or fix exposure "
+        "(material.fixed in a config, fixed= in fitter.fit)")
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Problem:
     """A fit set up: pixels, data arrays, free blocks; shared by fit and fit_batch.
@@ -205,7 +230,10 @@ class Problem:
         wt = _args.weights_of(weights, scene)
         options = {k: v for k, v in {**init, **fixed}.items() if k in material.option_keys()}
         if options:
-            material = Material.make(material.lobes, {**dict(material.options), **options})
+            material = Material.make(material.lobes, {**dict(material.options), **options},
+                                     exposure=material.exposure)
+        if EXPOSURE_KEY in init or EXPOSURE_KEY in fixed:
+            material = material.with_exposure()
         opt_keys = material.option_keys()
         numeric_fixed = {k: v for k, v in fixed.items() if k not in opt_keys}
         numeric_init = {k: v for k, v in init.items() if k not in opt_keys}
@@ -225,6 +253,10 @@ class Problem:
         rows, n_dropped, _ = select_pixels(renderer, targets[0], mask, exclude, saturation)
         if rows.size == 0:
             raise _no_pixels(renderer, mask, n_dropped, saturation)
+        degenerate = _exposure_degenerate(material, blocks,
+                                          np.asarray(renderer.geometry.background)[rows])
+        if degenerate is not None:
+            raise degenerate
         picked = targets.reshape(len(targets), -1, 3)[:, renderer.pixel_index[rows]]
         usable = np.all(np.isfinite(picked), axis=-1, keepdims=True)
         if saturation is not None:

@@ -227,9 +227,10 @@ def _copy_beside(path: str, folder: str) -> str:
     return name
 
 
-def scene_xml(d: dict, folder: str) -> str:
+def scene_xml(d: dict, folder: str, exposure: float = 1.0) -> str:
     """The XML text of scene dict ``d`` (files it reads copied into ``folder``).
-    Mitsuba is imported only for a plugin type ``_KNOWN_TAGS`` does not name."""
+    Mitsuba is imported only for a plugin type ``_KNOWN_TAGS`` does not name.
+    ``exposure`` (already applied to ``d``'s emitters) is stated in a comment."""
     mi = None
     d = _stock(d)
     root = ET.Element("scene", version="3.0.0")
@@ -245,6 +246,10 @@ def scene_xml(d: dict, folder: str) -> str:
                  f"Register them before loading this file:\n     {PLUGIN_IMPORT}\n-->\n")
     else:
         head += "<!-- Written by fitter; stock Mitsuba 3 (llvm_ad_rgb) loads it. -->\n"
+    if exposure != 1.0:
+        head += (f"<!-- exposure {exposure!r}: every emitter's intensity, irradiance, radiance "
+                 "or scale below is the config's times this, so the render is the exposed "
+                 "image (Mitsuba is linear in its emitters). -->\n")
     return head + body + "\n"
 
 
@@ -255,7 +260,7 @@ def export_scene(path: str, scene: Scene, material: Material, params, *, spp: in
     d = translate.scene_dict(scene, material, params, spp=spp, seed=seed, base_dir=base_dir,
                              mi=_NumpyMitsuba)
     folder = os.path.dirname(os.path.abspath(path))
-    text = scene_xml(d, folder)
+    text = scene_xml(d, folder, translate.exposure_of(material, params))
     with open(path, "w", encoding="utf-8") as fh:
         fh.write(text)
     return plugin_types(_stock(d))

@@ -9,6 +9,8 @@ k x k supersampling    ``hdrfilm`` + ``box`` filter (pixel-area average), many s
 point light            ``point`` (``intensity``, W/sr)
 directional light      ``directional`` (``irradiance``)
 environment            none (black), ``constant``, ``envmap`` (``scale``)
+exposure               every emitter's radiance/intensity/irradiance/scale times it
+                       (Mitsuba is linear in its emitters: the exposed image)
 lobes                  ``Lobe.mitsuba(p, opts)``; several: ``fitter_sum``
 interior medium        ``Lobe.mitsuba.interior`` (the dielectric's absorption)
 integrator             ``direct`` (1 emitter sample, no BSDF samples) unless a lobe
@@ -32,7 +34,7 @@ import math
 import os
 
 from ..bsdf.mitsuba_map import SIGMA_T_MAX as SIGMA_T_MAX, absorbing_medium, rgb as _rgb
-from ..material import Material, lobe_params
+from ..material import EXPOSURE_KEY, Material, lobe_params
 from ..scene import DirectionalLight, PointLight, Scene, resolve_path
 from .variant import MitsubaError
 
@@ -124,27 +126,35 @@ def _camera(mi, scene: Scene) -> dict:
     raise MitsubaError(f"camera.type = {cam.type!r}; allowed: 'perspective', 'orthographic'")
 
 
-def _emitters(scene: Scene, base_dir) -> dict:
+def exposure_of(material: Material, params) -> float:
+    """The material's exposure in ``params`` (``fitter.material.EXPOSURE``), else 1."""
+    return float(material.full_params(params)[EXPOSURE_KEY]) if material.exposure else 1.0
+
+
+def _emitters(scene: Scene, base_dir, exposure: float = 1.0) -> dict:
+    """Mitsuba's emitters of the scene, each scaled by ``exposure``."""
+    x = float(exposure)
+    scaled = lambda v: [float(c) * x for c in v]  # noqa: E731
     out = {}
     for i, light in enumerate(scene.lights):
         if isinstance(light, PointLight):
             out[f"light_{i}"] = {"type": "point", "position": _vec(light.position),
-                                 "intensity": _rgb(light.intensity)}
+                                 "intensity": _rgb(scaled(light.intensity))}
         elif isinstance(light, DirectionalLight):
             out[f"light_{i}"] = {"type": "directional", "direction": _vec(light.direction),
-                                 "irradiance": _rgb(light.irradiance)}
+                                 "irradiance": _rgb(scaled(light.irradiance))}
         else:
             raise MitsubaError(f"unknown light {light!r}")
     env = scene.environment
     if env.type == "constant":
         out["environment"] = {"type": "constant",
-                              "radiance": _rgb([float(c) * env.scale for c in env.radiance])}
+                              "radiance": _rgb(scaled([c * env.scale for c in env.radiance]))}
     elif env.type == "envmap":
         path = resolve_path(env.file, base_dir)
         if not os.path.exists(path):
             raise MitsubaError(f"environment.file = {env.file!r}: file not found ({path})")
         out["environment"] = {"type": "envmap", "filename": os.path.abspath(path),
-                              "scale": float(env.scale)}
+                              "scale": float(env.scale) * x}
     elif env.type != "black":
         raise MitsubaError(f"environment.type = {env.type!r}; allowed: black, constant, envmap")
     return out
@@ -177,4 +187,4 @@ def scene_dict(scene: Scene, material: Material, params, *, spp: int, seed: int,
     sensor["sampler"] = {"type": "stratified", "sample_count": stratified_spp(spp),
                          "seed": int(seed), "jitter": True}
     return {"type": "scene", "integrator": integrator_dict(material, scene), "sensor": sensor,
-            "sphere": sphere, **_emitters(scene, base_dir)}
+            "sphere": sphere, **_emitters(scene, base_dir, exposure_of(material, params))}
