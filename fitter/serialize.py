@@ -84,8 +84,11 @@ class Reader:
         for key in tbl:
             if key not in allowed:
                 name = f"{where}.{key}" if where else key
+                hint = ("; the exposure is a parameter: [material.fixed] exposure = x if "
+                        "known, [material.init] exposure = x to fit it"
+                        if key == EXPOSURE_KEY else "")
                 raise self.error(name, "unknown key; allowed keys here: "
-                                 + ", ".join(sorted(allowed)))
+                                 + ", ".join(sorted(allowed)) + hint)
 
     def sub(self, tbl, key, where="", required=False) -> dict:
         name = f"{where}.{key}" if where else key

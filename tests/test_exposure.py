@@ -119,6 +119,11 @@ def test_config_reads_and_writes_the_exposure():
     data["material"]["init"]["exposure"] = 0.0
     with pytest.raises(ConfigError, match=r"material\.init\.exposure.*outside"):
         job_from_dict(data)
+    data = copy.deepcopy(SMALL)
+    data["scene"]["exposure"] = 2.0  # where a user may look for it first
+    with pytest.raises(ConfigError, match=r"scene\.exposure: unknown key.*\[material\.fixed\] "
+                                          r"exposure = x if known"):
+        job_from_dict(data)
 
 
 def _exposed_case():

@@ -216,7 +216,8 @@ def cause(err, model, used, adequacy: dict, starts: list) -> str:
     if share > SCALE_SHARE:
         return (f"likely an exposure or light scale: the target is {1 - c:.4g} times the "
                 f"fitted image ({100 * share:.0f} % of the residual is that uniform scale); "
-                "check the lights' intensity and the image's exposure")
+                "check the lights' intensity and the image's exposure, or fit it "
+                "(exposure in init, with one lobe parameter fixed as the reference)")
     agree = starts_agree(starts)
     if agree:
         return (f"{len(starts)} starts agree, so it is not the start: the lobes cannot "

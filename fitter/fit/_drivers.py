@@ -52,7 +52,8 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         material: a ``Material``, a lobe list, or a ``"lambert+phong"`` string.
         init: initial values ``{"lobe.param": value}``; missing ones take the
             lobe's default. A parameter that is fixed by default (e.g.
-            ``torrance_sparrow.rho_s``) is freed by giving it here.
+            ``torrance_sparrow.rho_s``, ``"exposure"``: a scale of the whole image,
+            ``fitter.material.EXPOSURE``) is freed by giving it here.
         fixed: values held fixed (option values such as
             ``"torrance_sparrow.geometry": "smith"`` may also stand here).
         bounds: narrower ``(lower, upper)`` per parameter (inside its box).

@@ -15,6 +15,8 @@ float / int / bool / str ``<float>`` / ``<integer>`` / ``<boolean>`` / ``<string
 ``{"type": "rgb"}``      ``<rgb name=... value="r, g, b"/>``
 transform                ``<transform><matrix value="16 numbers"/></transform>``
 envmap ``filename``      the map copied beside the XML, named relatively
+exposure                 every emitter's radiance times it (``translate``), said
+                         in a comment at the top
 =======================  ==================================================
 
 A sum of lobes (``fitter_sum``, a plugin) becomes stock ``blendbsdf``s when
