@@ -121,7 +121,8 @@ class Material:
     def full_params(self, params: Mapping[str, Any] | None = None) -> dict[str, np.ndarray]:
         """Complete, validated float64 parameters: given values, defaults elsewhere.
 
-        Raises MaterialError naming the key for an unknown key, a wrong size,
+        A parameter with named values (``Param.named``: a conductor's ``eta``
+        and ``k``) may be given by name, e.g. ``"Au"``. Raises MaterialError naming the key for an unknown key, a wrong size,
         a non-finite value or a value outside the lobe's documented box.
         """
         specs = self.param_specs()
@@ -140,6 +141,12 @@ class Material:
                     f"unknown parameter {key!r} for lobes {list(self.lobes)}; known: "
                     + ", ".join(specs) + hint)
             spec = specs[key]
+            name = value if isinstance(value, str) else None
+            if name is not None and spec.named is not None:
+                if name not in spec.named:
+                    raise MaterialError(f"{key} = {name!r} is not a known name; known: "
+                                        + ", ".join(spec.named))
+                value = spec.named[name]
             try:
                 arr = np.asarray(value)
             except Exception:  # noqa: BLE001 (whatever a foreign object raises)
@@ -151,6 +158,8 @@ class Material:
             if arr.shape not in ((), (1,), spec.shape):
                 raise MaterialError(f"{key}: expected {spec.size} value(s), got {arr.size}")
             shown = checks.show(arr.item() if arr.size == 1 else arr.tolist())
+            if name is not None:
+                shown = f"{name!r} ({shown})"
             arr = _shaped(arr, spec)
             if not np.all(np.isfinite(arr)):
                 raise MaterialError(f"{key} = {shown} is not finite")
@@ -171,14 +180,22 @@ class Material:
             lobe = key.split(".", 1)[0]
             if lobe not in lobes:
                 lobes.append(lobe)
-            if isinstance(value, (str, bool)) or (
-                    lobe in LOBES and _is_option(lobe, key.split(".", 1)[-1])):
+            # A string is an option value, unless the key names a parameter
+            # (a conductor's eta = "Au": ``Param.named``).
+            if isinstance(value, bool) or (lobe in LOBES and _is_option(
+                    lobe, key.split(".", 1)[-1])) or (isinstance(value, str) and not (
+                    lobe in LOBES and _is_param(lobe, key.split(".", 1)[-1]))):
                 options[key] = value
         return cls.make(lobes, options, exposure=EXPOSURE_KEY in params)
 
 
 def _is_option(lobe: str, name: str) -> bool:
     return any(o.name == name for o in LOBES[lobe].options)
+
+
+def _is_param(lobe: str, name: str) -> bool:
+    return any(p.name == name for ps in (LOBES[lobe].params, *LOBES[lobe].variants.values())
+               for p in ps)
 
 
 def _split_key(key: str, lobes) -> tuple[str, str]:

@@ -44,12 +44,14 @@ def complete_params(material: Material, params: Mapping[str, Any], dtype=jnp.flo
     only by its shape, as its value is not known here.
     """
     specs = material.param_specs()
-    material.full_params({
+    checked = material.full_params({
         k: (np.full(np.shape(v), specs[k].default) if isinstance(v, jax.core.Tracer)
             and k in specs else v) for k, v in params.items()})
     out = {}
     for key, spec in specs.items():
         value = params.get(key, spec.default)
+        if isinstance(value, str):  # a named value (a metal's eta): its numbers
+            value = checked[key]
         out[key] = jnp.broadcast_to(jnp.asarray(value, dtype=dtype), spec.shape)
     return out
 

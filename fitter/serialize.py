@@ -353,6 +353,21 @@ def _values(r: Reader, material: Material, tbl: dict, where: str, allow_options:
             raise r.error(name, f"unknown parameter for lobes {', '.join(material.lobes)}; "
                           "known: " + ", ".join(specs))
         spec = specs[key]
+        if isinstance(value, str) and spec.named is not None:  # "Au": Param.named
+            try:
+                arr = material.full_params({key: value})[key]
+            except MaterialError as exc:
+                raise r.error(name, str(exc)) from None
+            out[key] = float(arr) if arr.ndim == 0 else tuple(float(x) for x in arr)
+            continue
+        if isinstance(value, str):
+            lobe, _, pname = key.partition(".")
+            named_with = [f"{lobe}.{opt} = {val!r}" for (opt, val), ps in
+                          (LOBES[lobe].variants.items() if lobe in LOBES else ())
+                          if any(p.name == pname and p.named for p in ps)]
+            if named_with:
+                raise r.error(name, f"= {value!r}: a name is allowed only with "
+                              f"{named_with[0]} (in material.fixed); give numbers here")
         if isinstance(value, list):
             nums = [r.number(v, name) for v in value]
             if len(nums) not in (1, spec.size):

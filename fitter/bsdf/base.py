@@ -67,6 +67,9 @@ class Param:
         doc: meaning and units (configs/README.md's parameter table shows
             it; ``fitter.bsdf.tables``).
         free: whether the fitter frees it by default.
+        named: values a user may give by name instead of numbers,
+            ``{name: value}`` (a conductor's ``eta`` / ``k``: Mitsuba's metals,
+            ``fitter.bsdf.metals``); None: numbers only.
     """
 
     name: str
@@ -77,6 +80,8 @@ class Param:
     transform: str
     doc: str = ""
     free: bool = True  # fitted unless the user fixes it
+    named: Mapping[str, Any] | None = dataclasses.field(default=None, compare=False,
+                                                         repr=False)
 
     @property
     def shape(self) -> tuple[int, ...]:

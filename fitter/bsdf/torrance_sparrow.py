@@ -41,6 +41,7 @@ from .._math import safe_div
 from .base import Hints, Lobe, Option, Param, Point, Quadrature
 from .fresnel import (conductor_f0, fresnel_conductor, fresnel_conductor_grad, fresnel_dielectric,
                       fresnel_dielectric_deta)
+from .metals import METALS
 from .microfacet import (beckmann_d_lecture, beckmann_dlog_d_dm, g_smith, g_v_groove,
                          smith_g1_beckmann_dm)
 from .mitsuba_map import MitsubaMapping, cosine_sampled, props_rgb, rgb
@@ -202,10 +203,13 @@ LOBE = Lobe(
         _M,
         Param("eta", 3, 1.0, 1e-2, 10.0, "log",
               "real part of the conductor's complex index of refraction (Au ≈ 0.14, 0.37, "
-              "1.44); with `k` only F0 = ((η−1)²+k²)/((η+1)²+k²) is well determined"),
+              "1.44); with `k` only F0 = ((η−1)²+k²)/((η+1)²+k²) is well determined; "
+              "or a Mitsuba metal's name (`\"Au\"`, `\"Cu\"`, ...: `fitter/bsdf/metals.py`)",
+              named={n: eta for n, (eta, _) in METALS.items()}),
         Param("k", 3, 3.0, 1e-3, 20.0, "log",
               "extinction coefficient, the imaginary part of the complex index "
-              "(Au ≈ 3.98, 2.39, 1.60)"),
+              "(Au ≈ 3.98, 2.39, 1.60); or a Mitsuba metal's name",
+              named={n: k for n, (_, k) in METALS.items()}),
         _RHO)},
     scale="rho_s",
     shape=_shape,
