@@ -97,16 +97,24 @@ def test_an_exposure_every_lobe_scale_can_absorb_is_refused(lobes, fixed, named)
     assert "fix exposure" in msg and "material.fixed" in msg
 
 
-def test_a_fixed_scale_or_a_background_reference_is_not_refused():
+def test_a_fixed_scale_or_the_sky_behind_the_rim_is_a_reference():
     target = np.zeros((32, 32, 3))
     # a reflectance fixed at a known value is the reference
     Problem.make(target[None], SCENE, "lambert", init={"exposure": 1.0},
                  fixed={"lambert.rho_d": 0.5})
-    # the sky behind rim pixels ("active" mask) is light of known scale
-    sky = SCENE.replace(environment=fitter.Environment(type="constant", radiance=(1.0,) * 3))
-    Problem.make(target[None], sky, "lambert", init={"exposure": 1.0}, mask="active")
+    sky = SCENE.replace(environment=fitter.Environment(type="constant", radiance=(0.5,) * 3))
     with pytest.raises(FitterError):
         Problem.make(target[None], sky, "lambert", init={"exposure": 1.0}, mask="interior")
+    # the sky behind the rim pixels ("active" mask) is light of known scale: a
+    # white patch of sorts, which pins the exposure (noise 0.01, known)
+    truth = {"lambert.rho_d": [0.2, 0.3, 0.6], "exposure": 2.0}
+    image = np.asarray(fitter.render(truth, sky))
+    image = image + np.random.default_rng(0).normal(0.0, 0.01, image.shape)
+    res = fitter.fit(image, sky, "lambert", init={"exposure": 1.0}, mask="active",
+                     noise_sigma=0.01)
+    assert res.converged, res.message
+    err = abs(res.params["exposure"] - 2.0)
+    assert err < EXPOSURE_REL * 2.0 and err < 3 * res.stderr["exposure"]
 
 
 def test_config_reads_and_writes_the_exposure():
