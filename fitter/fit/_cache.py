@@ -34,7 +34,9 @@ for _cls in (Data, Geometry, Cosines, EnvData):
 @functools.lru_cache(maxsize=1)
 def _source_fingerprint() -> str:
     root = pathlib.Path(__file__).resolve().parents[1]
-    h = hashlib.sha256(jax.__version__.encode())
+    from ._solvers import _library_versions  # a trace holds their code and result codes
+
+    h = hashlib.sha256((jax.__version__ + _library_versions()).encode())
     for path in sorted(root.rglob("*.py")):
         h.update(path.read_bytes())
     return h.hexdigest()

@@ -9,7 +9,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ._cache import compile_cached
 from ._problem import Spec, residuals
@@ -60,12 +59,14 @@ def best_start(costs, zs, xp=np):
 def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps: int):
     """Compiled entry: starts (S, n) -> (z, code, steps, cost) per start, the
     best start's index, and ``jacobian_r`` there (the diagnostics)."""
-    solver = make_solver(solver_name, rtol, atol)
-
     def fn(z, data):
         return residuals(z, data, spec)
 
     def one(z0, data):
+        # optimistix only when tracing (0.5 s to import): a cached trace does without it
+        import optimistix as optx
+
+        solver = make_solver(solver_name, rtol, atol)
         sol = optx.least_squares(fn, solver, z0, args=data, max_steps=max_steps, throw=False)
         info = getattr(sol.state, "f_info", None)
         # optimistix's solver state is not public API: anything else falls back.
