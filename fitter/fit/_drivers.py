@@ -18,8 +18,8 @@ import numpy as np
 
 from ..limits import check_fit
 from ..scene import Scene
-from . import _args
-from ._compile import best_start, compiled, jac_res, r_factor
+from . import _args, _coarse
+from ._compile import best_start, compiled, jac_res, r_factor, remember_jacobian
 from ._covariance import residual_variance
 from ._identify import WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction
 from ._problem import blocks_of, format_value, user_values, z_from_params
@@ -112,7 +112,14 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
             return all_held(problem, 0, t_compile, 0.0)
     data = problem.data(0)
     z0s = make_starts(problem.spec, problem.z_init(), n_starts)
-    zs, codes, nsteps, costs, best, (R, r), tc = solve_starts(problem, z0s, data, say)
+    first = None
+    if _coarse.eligible(problem.renderer.scene, mask=mask, exclude=exclude, weights=weights,
+                        saturation=saturation, loss=loss, dtype=dtype, n_starts=n_starts):
+        first = _coarse.solve(problem, target.reshape(target.shape[-3:]), z0s, data,
+                              solve_starts, say, base_dir)
+    if first is None:
+        first = solve_starts(problem, z0s, data, say)
+    zs, codes, nsteps, costs, best, (R, r), tc = first
     t_compile += tc
     note = None
     if n_starts == 1 and identifiability:
@@ -170,7 +177,9 @@ def solve_starts(problem: Problem, z0s, data, say=_quiet, what: str = ""):
             f"{float(outs[-1][3][0]):.4g}")
     zs, codes, steps, costs = (np.concatenate([o[k] for o in outs]) for k in range(4))
     best = int(best_start(costs, zs))
-    return zs, codes, steps, costs, best, outs[best][5], t_compile
+    R, r, J = outs[best][5]
+    remember_jacobian(problem.spec, zs[best], data, J, r)
+    return zs, codes, steps, costs, best, (R, r), t_compile
 
 
 def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
