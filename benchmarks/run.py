@@ -32,7 +32,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 #: The speed targets of the project (lambert + torrance_sparrow, 256^2, 2 point lights).
 TARGET_CASE, TARGET_RES = "plastic", 256
-TARGET_FIT_S, TARGET_COMPILE_S, TARGET_VS_SCIPY, TARGET_VS_MITSUBA = 0.2, 2.0, 10.0, 100.0
+TARGET_FIT_S, TARGET_COMPILE_S, TARGET_VS_SCIPY, TARGET_VS_MITSUBA = 0.1, 1.5, 30.0, 100.0
 LEVELS = (1e-2, 1e-3)
 
 #: (case, resolution, method, options) of each run.
