@@ -300,6 +300,11 @@ def run(spec: dict) -> dict:
 
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import fitter  # noqa: F401  (x64)
+    from fitter.compilation_cache import enable_compilation_cache
+
+    # FITTER_CACHE_DIR (set by run.py: empty for a first run, a folder for the
+    # warm rerun) as the CLI uses it: persistent XLA cache and exported traces.
+    enable_compilation_cache()
 
     case, res, method = spec["case"], int(spec["res"]), spec["method"]
     job, base = load_job(case, res)

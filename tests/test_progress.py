@@ -63,3 +63,12 @@ def test_the_cli_spinner_line_shows_the_starts_as_they_finish(tmp_path, monkeypa
     assert "fitting (levenberg_marquardt, 2 start(s)) ... start 1/2 done:" in text
     assert "start 2/2 done:" in text
     assert re.search(r"fitting \(levenberg_marquardt, 2 start\(s\)\): [\d.]+ s", text)
+
+
+def test_a_fit_out_of_steps_says_so_in_the_products_words(tmp_path):
+    _, job = _small_job(tmp_path, 1)
+    target = fitter.imageio.read_image(job.fit.target)
+    res = fitter.fit(target, job.scene, job.material, init=job.init, fixed=job.fixed,
+                     max_steps=1)
+    assert res.status == "max_steps"
+    assert "max_steps" in res.message and "root-find" not in res.message

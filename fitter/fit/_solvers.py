@@ -68,6 +68,11 @@ assert tuple(_MAKERS) == SOLVERS, "fitter.fit._names.SOLVERS lists the solvers"
 MAX_STEPS = {"adam": 5000, "bfgs": 1000}
 
 
+#: The message of a fit that ran out of steps (optimistix's names a root-find).
+MAX_STEPS_MESSAGE = ("the solver used its whole step budget (max_steps) without meeting its "
+                     "tolerances; raise fit.max_steps, or start closer to the answer")
+
+
 def make_solver(name: str, rtol: float, atol: float):
     """The optimistix solver for ``name`` (one of ``SOLVERS``)."""
     if name not in _MAKERS:
@@ -166,8 +171,11 @@ def result_item(code: int):
 
 def solver_outcome(code: int) -> tuple[str, str]:
     """(status, message) of a solver code: status ``"converged"``,
-    ``"max_steps"`` or ``"failed"``; the message is optimistix's."""
+    ``"max_steps"`` or ``"failed"``; the message is optimistix's, except the
+    product's own ``MAX_STEPS_MESSAGE``."""
     found = outcome_table().get(int(code))
     if found is None:
         return "failed", f"optimistix result code {code}"
+    if found[0] == "max_steps":  # optimistix's text speaks of root-finds
+        return "max_steps", MAX_STEPS_MESSAGE
     return found
