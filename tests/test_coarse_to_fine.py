@@ -79,3 +79,34 @@ def test_only_plain_large_fits_start_coarse():
     for change in ({"loss": "huber"}, {"dtype": np.float32}, {"n_starts": 4},
                    {"mask": "active"}, {"weights": np.ones((256, 256))}):
         assert not _coarse.eligible(big, **{**plain, **change}), change
+
+
+@pytest.mark.parametrize("coarse", [False, True])
+def test_the_jacobian_the_covariance_reuses_is_the_one_at_the_solution(
+        target, monkeypatch, coarse):
+    # The solve hands its last linearisation to the covariance's block sandwich
+    # (``_compile.remember_jacobian``) instead of linearising again: it must be
+    # the Jacobian at the returned point (coarse to fine: taken one step
+    # before it, a step within the solver's tolerance).
+    import jax
+    import jax.numpy as jnp
+
+    from fitter.fit import _coarse as coarse_mod, _compile, _drivers
+
+    kept = []
+
+    def keep(spec, z, data, J, r):
+        kept.append((spec, np.asarray(z), data, np.asarray(J), np.asarray(r)))
+        _compile.remember_jacobian(spec, z, data, J, r)
+
+    monkeypatch.setattr(_drivers, "remember_jacobian", keep)
+    monkeypatch.setattr(coarse_mod, "remember_jacobian", keep)
+    res = _fit(target, coarse, monkeypatch)
+    spec, z, data, J, r = kept[-1]
+    assert 0.5 * float(r @ r) == pytest.approx(res.cost, rel=1e-9)
+    J_ref, r_ref = jax.jit(lambda z: _compile.jacobian_full(spec, z, data))(jnp.asarray(z))
+    J_ref, r_ref = np.asarray(J_ref), np.asarray(r_ref)
+    # what the covariances use: J^T J (and J's rows, to a step within tolerance)
+    np.testing.assert_allclose(J.T @ J, J_ref.T @ J_ref, rtol=1e-5)
+    assert np.all(np.abs(J - J_ref) <= 1e-3 * np.abs(J_ref).max(axis=0))
+    np.testing.assert_allclose(r, r_ref, rtol=0, atol=1e-6 * np.abs(r_ref).max())
