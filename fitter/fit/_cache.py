@@ -1,13 +1,14 @@
 """Traced solvers kept on disk, so a repeated job neither traces nor compiles.
 
 JAX's persistent compilation cache (enabled by the CLI, see
-``fitter.cli._enable_compilation_cache``) only skips XLA's compilation; tracing
+``fitter.compilation_cache``) only skips XLA's compilation; tracing
 an optimistix solve through the renderer still costs about a second. When that
 cache is on, the traced function is also exported (``jax.export``, StableHLO
 serialised with flatbuffers) next to it and reloaded by later processes; XLA
 then finds the compiled code in its own cache. The file name hashes the call's
-structure and shapes, the JAX version and the fitter sources, so a change of
-any of them traces anew. Any problem with the files falls back to tracing.
+structure and shapes, the JAX and solver libraries' versions and the fitter
+sources, so a change of any of them traces anew. A cached trace runs without
+optimistix (``_solvers.outcome_table`` names its result codes). Any problem with the files falls back to tracing.
 """
 
 from __future__ import annotations
