@@ -37,7 +37,8 @@ def test_each_start_reports_its_steps_and_cost(tmp_path):
         steps, cost = re.search(r"(\d+) steps, cost (\S+)", line).groups()
         assert int(steps) >= 1
         np.testing.assert_allclose(float(cost), start["cost"], rtol=1e-3)
-    assert any(ln.startswith("start 2/2 (best cost so far") for ln in lines), lines
+    assert lines.index("solving from start 1/2") < lines.index(done[0]), lines
+    assert any(ln.startswith("solving from start 2/2 (best cost so far") for ln in lines), lines
     # the same fit without progress gives the same answer
     quiet = fitter.fit(target, job.scene, job.material, init=job.init, fixed=job.fixed,
                        n_starts=2)

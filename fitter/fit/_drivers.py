@@ -165,12 +165,10 @@ def solve_starts(problem: Problem, z0s, data, say=_quiet, what: str = ""):
     solve, t_compile = compiled("solve", problem.spec, (one, data), **problem.static)
     outs = []
     n = len(z0s)
-    for i in range(n):
-        if i:
-            say(f"{what}start {i + 1}/{n} (best cost so far "
-                f"{min(float(o[3][0]) for o in outs):.4g})")
-        elif n > 1 or what:
-            say(f"{what}start 1/{n}")
+    for i in range(n):  # the line stands while the start solves
+        best_so_far = (f" (best cost so far {min(float(o[3][0]) for o in outs):.4g})"
+                       if outs else "")
+        say(f"{what}solving from start {i + 1}/{n}{best_so_far}")
         out = solve(problem.cast(z0s[i:i + 1]), data)
         outs.append(jax.tree_util.tree_map(np.asarray, out))
         say(f"{what}start {i + 1}/{n} done: {int(outs[-1][2][0])} steps, cost "
