@@ -110,3 +110,23 @@ def test_the_jacobian_the_covariance_reuses_is_the_one_at_the_solution(
     np.testing.assert_allclose(J.T @ J, J_ref.T @ J_ref, rtol=1e-5)
     assert np.all(np.abs(J - J_ref) <= 1e-3 * np.abs(J_ref).max(axis=0))
     np.testing.assert_allclose(r, r_ref, rtol=0, atol=1e-6 * np.abs(r_ref).max())
+
+
+@pytest.mark.parametrize("coarse", [False, True])
+def test_the_stated_errors_do_not_linearise_again(target, monkeypatch, coarse):
+    from fitter.fit import _compile
+
+    kinds = []
+    compiled = _compile.compiled
+
+    def spy(kind, *args, **kwargs):
+        kinds.append(kind)
+        return compiled(kind, *args, **kwargs)
+
+    for module in ("_drivers", "_coarse", "_verdict"):
+        monkeypatch.setattr(f"fitter.fit.{module}.compiled", spy, raising=False)
+    monkeypatch.setattr(_compile, "compiled", spy)
+    res = _fit(target, coarse, monkeypatch)
+    assert res.status == "converged" and res.stderr_sys  # the block sandwich ran
+    assert "jacfull" not in kinds, kinds  # the block sandwich used the solver's J
+    assert not _compile._JACOBIANS  # and let it go

@@ -163,9 +163,10 @@ def jac_res(spec: Spec, z, data):
     return r_factor(R), np.asarray(r, dtype=np.float64), tc
 
 
-#: The last solutions' whole Jacobians (``remember_jacobian``), most recent last.
+#: The last solution's whole Jacobian (``remember_jacobian``); one only, and
+#: dropped once used: at 1024^2 one is ~130 MB.
 _JACOBIANS: dict = {}
-_KEEP_JACOBIANS = 2
+_KEEP_JACOBIANS = 1
 
 
 def _jacobian_key(spec: Spec, z, data):
@@ -197,7 +198,7 @@ def jac_full(spec: Spec, z, data):
 
     The solver's own linearisation when ``z`` is a solution it returned
     (``remember_jacobian``: the same J, spared a second linearisation)."""
-    known = _JACOBIANS.get(_jacobian_key(spec, z, data))
+    known = _JACOBIANS.pop(_jacobian_key(spec, z, data), None)
     if known is not None:
         return known[0], known[1], 0.0
     z = jnp.asarray(z, dtype=data.target.dtype)
