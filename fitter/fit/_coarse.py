@@ -3,9 +3,10 @@
 then finish at full size with undamped Gauss-Newton steps.
 
 The full-size finish is checked, not trusted: each step must lower the cost,
-and the fit stops at a point whose next Gauss-Newton step is within the
-solver's tolerances (|dz| <= atol + rtol |z|, optimistix's own test), so the
-result is the full-size optimum with the full-size Jacobian's stated errors.
+and the finish ends with a Gauss-Newton step within the solver's tolerances
+(|dz| <= atol + rtol |z|, optimistix's own test), taken with the residuals
+linearised there, so the result is the full-size optimum with the full-size
+Jacobian's stated errors.
 If a step raises the cost or the steps do not settle in ``MAX_FINE_STEPS``,
 the caller solves at full size from the original start as if this module did
 not exist (measured on 256^2 plastic from the far start: 8 coarse steps and
