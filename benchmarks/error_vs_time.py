@@ -9,9 +9,12 @@ separately):
   and coordinates as ``fitter.fit`` (``fitter.fit._problem``,
   ``fitter.fit._solvers``), driven by ``solver.init`` / ``solver.step`` /
   ``solver.terminate`` each jit-compiled once -- the loop body of
-  ``optimistix.least_squares``, dispatched from Python once per step. The
-  product's own figures (``fitter.fit`` cold: compile + run; warm: run) are
-  measured in the same process.
+  ``optimistix.least_squares``, dispatched from Python once per step. Where
+  ``fitter.fit`` starts coarse (LM on a large image, ``fitter.fit._coarse``),
+  so does the trace: LM steps on the 2 x 2 averaged image, then the
+  full-size Gauss-Newton steps, each recorded. The product's own figures
+  (``fitter.fit`` cold: compile + run; warm: run) are measured in the same
+  process.
 * scipy (baseline A): ``least_squares``'s per-iteration ``callback``.
 * Mitsuba (baseline B): one record per Adam iteration.
 
@@ -48,6 +51,8 @@ BASELINE_CASE = "plastic"
 #: Relative error floor: a parameter whose truth is below it is compared absolutely.
 REL_FLOOR = 1e-3
 RTOL, ATOL = 1e-8, 1e-10
+#: fitter.fit's default tolerances (the coarse-to-fine finish settles on them).
+RTOL_PRODUCT, ATOL_PRODUCT = 1e-6, 1e-8
 TRACE_STEPS = {"lm": 100, "dogleg": 100, "bfgs": 400, "adam": 1500}
 
 
@@ -129,7 +134,7 @@ class _Problem:
         return lambda p: float(f({k: jnp.asarray(v) for k, v in p.items()}))
 
 
-def stepper(problem: _Problem, solver_name: str):
+def stepper(problem: _Problem, solver_name: str, rtol: float = RTOL, atol: float = ATOL):
     """(init(z) -> state, step(z, state) -> (z, state, done), compile seconds)."""
     import equinox as eqx
     import jax
@@ -140,7 +145,7 @@ def stepper(problem: _Problem, solver_name: str):
     from fitter.fit._solvers import make_solver
 
     spec, data = problem.spec, problem.data
-    solver = make_solver(solver_name, RTOL, ATOL)
+    solver = make_solver(solver_name, rtol, atol)
     scalar = isinstance(solver, optx.AbstractMinimiser)
 
     def fn(z, d):
@@ -173,6 +178,51 @@ def stepper(problem: _Problem, solver_name: str):
     return run_init, lambda z, dyn: step(z, dyn, data), compile_s
 
 
+def coarse_problem(method, job, base, target, init):
+    """The coarse stage's problem when ``fitter.fit`` would start coarse (LM, a
+    large image: ``fitter.fit._coarse.eligible``), else None."""
+    from fitter.fit import _coarse
+
+    if method != "lm" or not _coarse.eligible(
+            job.scene, mask="interior", exclude=None, weights=None, saturation=None,
+            loss="l2", dtype=np.float64, n_starts=1):
+        return None
+    s = job.scene
+    h, w = s.height // 2, s.width // 2
+    small = np.asarray(target, dtype=np.float64).reshape(h, 2, w, 2, 3).mean(axis=(1, 3))
+    scene = s.replace(width=w, height=h, supersampling=s.supersampling // 2)
+    return _Problem(job.replace(scene=scene), base, small, init)
+
+
+def finish_fine(prob, z, samples, t_run):
+    """The full-size Gauss-Newton finish of ``fitter.fit._coarse.solve`` from the
+    coarse solution ``z``, one recorded sample per step. Returns (z, t_run,
+    compile seconds)."""
+    import functools
+
+    import jax
+
+    from fitter.fit import _coarse
+    from fitter.fit._compile import gauss_newton_step
+
+    step = jax.jit(functools.partial(gauss_newton_step, prob.spec))
+    t0 = time.perf_counter()
+    jax.block_until_ready(step(jax.numpy.asarray(z), prob.data))
+    compile_s = time.perf_counter() - t0
+    z = np.asarray(z, dtype=np.float64)
+    for _ in range(_coarse.MAX_FINE_STEPS):
+        t0 = time.perf_counter()
+        out = step(jax.numpy.asarray(z), prob.data)
+        dz = np.asarray(out[3])  # waits for the step
+        t_run += time.perf_counter() - t0
+        settled = np.all(np.abs(dz) <= ATOL_PRODUCT + RTOL_PRODUCT * np.abs(z))
+        z = z + dz
+        samples.append((len(samples), t_run, prob.params(z)))
+        if settled:
+            break
+    return z, t_run, compile_s
+
+
 def run_jax(method, job, base, target, init, max_steps):
     """Product figures (``fitter.fit`` cold, warm) and the step trace."""
     import jax
@@ -188,7 +238,12 @@ def run_jax(method, job, base, target, init, max_steps):
     fitter.fit(target, job.scene, job.material, **plain)
     defaults = fitter.fit(target, job.scene, job.material, **plain)
     prob = _Problem(job, base, target, init)
-    run_init, step, compile_s = stepper(prob, solver)
+    coarse = coarse_problem(method, job, base, target, init)
+    # What fitter.fit does: a large image starts on its 2 x 2 average
+    # (fitter.fit._coarse), stepped here like the direct solve.
+    first = coarse or prob
+    run_init, step, compile_s = stepper(first, solver, *(
+        (RTOL_PRODUCT, ATOL_PRODUCT) if coarse else (RTOL, ATOL)))
     z = jax.numpy.asarray(prob.z0())
     samples = [(0, 0.0, prob.params(z))]
     t_run = 0.0
@@ -204,6 +259,9 @@ def run_jax(method, job, base, target, init, max_steps):
         samples.append((i, t_run, prob.params(z)))
         if done:
             break
+    if coarse is not None:
+        z, t_run, compile_gn = finish_fine(prob, z, samples, t_run)
+        compile_s += compile_gn
     product = {"compile_s": cold.time_compile, "fit_cold_s": cold.time_compile + cold.time_run,
                "fit_warm_s": warm.time_run, "iterations": warm.iterations,
                "fit_warm_defaults_s": defaults.time_run,
@@ -242,6 +300,11 @@ def run(spec: dict) -> dict:
 
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
     import fitter  # noqa: F401  (x64)
+    from fitter.compilation_cache import enable_compilation_cache
+
+    # FITTER_CACHE_DIR (set by run.py: empty for a first run, a folder for the
+    # warm rerun) as the CLI uses it: persistent XLA cache and exported traces.
+    enable_compilation_cache()
 
     case, res, method = spec["case"], int(spec["res"]), spec["method"]
     job, base = load_job(case, res)

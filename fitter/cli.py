@@ -231,15 +231,24 @@ class _Log:
 
     @contextlib.contextmanager
     def stage(self, text: str):
-        """A spinner with the elapsed seconds while the stage runs, then its time."""
+        """A spinner with the elapsed seconds while the stage runs, then its time.
+
+        Yields ``note(line)``: shows ``line`` (the stage's progress, e.g. a
+        start's steps and cost) after the stage's text on the spinner line.
+        """
         from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
         _check_interrupt()
         t0 = time.perf_counter()
         with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
                       console=self.console, transient=True) as bar:
-            bar.add_task(text + " ...", total=None)
-            yield
+            task = bar.add_task(text + " ...", total=None)
+
+            def note(line: str) -> None:
+                _check_interrupt()  # a stage boundary: a remembered signal stops here
+                bar.update(task, description=f"{text} ... {_printable(line)}", refresh=True)
+
+            yield note
         _check_interrupt()
         self.console.print(f"[dim]{text}: {time.perf_counter() - t0:.2f} s[/dim]")
 

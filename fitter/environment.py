@@ -19,7 +19,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from ._math import safe_sqrt
+from ._math import safe_sqrt, to_device
 from .scene import Environment, resolve_path
 
 
@@ -37,9 +37,9 @@ def load_environment(env: Environment, base_dir: str | None = None) -> EnvData:
 
         path = resolve_path(env.file, base_dir)
         img = np.asarray(read_image(path), dtype=np.float64) * env.scale
-        return EnvData(jnp.asarray(img), jnp.zeros(3))
+        return EnvData(to_device(img), to_device(np.zeros(3)))
     rad = np.zeros(3) if env.type == "black" else np.asarray(env.radiance, dtype=np.float64) * env.scale
-    return EnvData(jnp.zeros((1, 1, 3)), jnp.asarray(rad))
+    return EnvData(to_device(np.zeros((1, 1, 3))), to_device(rad))
 
 
 def direction_to_uv(v):

@@ -194,7 +194,10 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
     t = intersect_sphere(o, d, sph.center, sph.radius)
     hit_all = np.isfinite(t)
 
-    miss_rad = np.asarray(lookup(env_type, env, jnp.asarray(d)))  # (H, W, K, 3)
+    if env_type == "envmap":
+        miss_rad = np.asarray(lookup(env_type, env, jnp.asarray(d)))  # (H, W, K, 3)
+    else:  # a constant: no device round trip (each eager op compiles a kernel)
+        miss_rad = np.broadcast_to(np.asarray(env.constant, dtype=np.float64), d.shape)
     background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
 
     active = hit_all.any(axis=2).reshape(-1)

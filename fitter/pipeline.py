@@ -24,6 +24,8 @@ if TYPE_CHECKING:  # the fit engine imports JAX: only when a job runs
     from .fit.result import FitResult
 
 #: ``stage(text)`` wraps each step of a job (progress display); default silent.
+#: What it yields, if not None, is called with progress lines of the step
+#: (``fitter.fit``'s ``progress``: starts done, their steps and cost).
 Stage = Callable[[str], ContextManager]
 
 
@@ -137,14 +139,14 @@ def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *
     @contextlib.contextmanager
     def timed(key: str, text: str):
         t0 = time.perf_counter()
-        with stage(text):
-            yield
+        with stage(text) as note:
+            yield note
         times[key] = time.perf_counter() - t0
 
     if saturated is None:
         saturated = np.zeros(target.shape[:2], dtype=bool)
-    with timed("fit", f"fitting ({job.fit.solver}, {job.fit.n_starts} start(s))"):
-        result = fit_job(job, target, saturated)
+    with timed("fit", f"fitting ({job.fit.solver}, {job.fit.n_starts} start(s))") as note:
+        result = fit_job(job, target, saturated, progress=note)
         from .bsdf.derived import derive
 
         derived, notes = derive(job.material, result)
@@ -179,8 +181,10 @@ def preflight(job: Job) -> None:
         limits.check_spp(job.fit.validate_spp, "fit.validate_spp", where=job.path)
 
 
-def fit_job(job: Job, target: np.ndarray, saturated: np.ndarray) -> FitResult:
-    """The fit engine on ``job``'s scene, material and ``[fit]`` options."""
+def fit_job(job: Job, target: np.ndarray, saturated: np.ndarray,
+            progress: Callable[[str], None] | None = None) -> FitResult:
+    """The fit engine on ``job``'s scene, material and ``[fit]`` options;
+    ``progress`` gets the fit's progress lines (``fitter.fit``)."""
     import jax.numpy as jnp
 
     from . import fit as engine
@@ -192,7 +196,8 @@ def fit_job(job: Job, target: np.ndarray, saturated: np.ndarray) -> FitResult:
         target, job.scene, job.material, init=job.init, fixed=job.fixed,
         solver=opts.solver, mask=opts.mask, exclude=saturated if saturated.any() else None,
         noise_sigma=opts.noise_sigma, loss=opts.loss, saturation=opts.saturation,
-        n_starts=opts.n_starts, dtype=getattr(jnp, opts.dtype), base_dir=job.base_dir, **kwargs)
+        n_starts=opts.n_starts, dtype=getattr(jnp, opts.dtype), base_dir=job.base_dir,
+        progress=progress, **kwargs)
 
 
 def render_params(job: Job, params: Mapping[str, Any]) -> np.ndarray:

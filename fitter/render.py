@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import checks
+from ._math import to_device
 from ._modules import make_callable
 from .bsdf.base import SurfaceHit
 from .environment import EnvData, load_environment, lookup
@@ -52,7 +53,10 @@ def complete_params(material: Material, params: Mapping[str, Any], dtype=jnp.flo
         value = params.get(key, spec.default)
         if isinstance(value, str):  # a named value (a metal's eta): its numbers
             value = checked[key]
-        out[key] = jnp.broadcast_to(jnp.asarray(value, dtype=dtype), spec.shape)
+        if isinstance(value, jax.Array) or isinstance(value, jax.core.Tracer):
+            out[key] = jnp.broadcast_to(jnp.asarray(value, dtype=dtype), spec.shape)
+        else:  # a host value: no eager kernel to compile
+            out[key] = to_device(np.broadcast_to(np.asarray(value, dtype=dtype), spec.shape))
     return out
 
 
@@ -267,10 +271,9 @@ def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
                               np.asarray(env64.constant))
     geo = build_geometry(scene, scene.environment.type, env64, lighting)
     # float32 renders still get geometry computed in float64, then rounded.
-    cast = lambda a: jnp.asarray(a, dtype=dtype) if np.asarray(a).dtype.kind == "f" \
-        else jnp.asarray(a)  # noqa: E731
-    sphere = (jnp.asarray(scene.sphere.center, dtype=dtype),
-              jnp.asarray(scene.sphere.radius, dtype=dtype))
+    cast = lambda a: to_device(a, dtype) if np.asarray(a).dtype.kind == "f" \
+        else to_device(a)  # noqa: E731
+    sphere = (to_device(scene.sphere.center, dtype), to_device(scene.sphere.radius, dtype))
     return jax.tree_util.tree_map(cast, geo), jax.tree_util.tree_map(cast, env64), sphere
 
 

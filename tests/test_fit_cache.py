@@ -25,13 +25,18 @@ scene = fitter.Scene(width=16, height=16, supersampling=1,
                      lights=(fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),))
 target = np.asarray(fitter.render({"lambert.rho_d": 0.5}, scene))
 assert fitter.fit(target, scene, "lambert").status == "converged"
+print("loaded:", " ".join(m for m in ("optimistix", "lineax", "equinox", "optax")
+                          if m in sys.modules))
 """
 
 
-def run_fit(folder):
+def run_fit(folder) -> set[str]:
+    """Run ``FIT``; the solver libraries it imported."""
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    subprocess.run([sys.executable, "-c", FIT, str(folder)], check=True, env=env, cwd=ROOT,
-                   timeout=300)
+    proc = subprocess.run([sys.executable, "-c", FIT, str(folder)], check=True, env=env,
+                          cwd=ROOT, timeout=300, capture_output=True, text=True)
+    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("loaded:")][-1]
+    return set(line.split()[1:])
 
 
 def test_a_corrupt_cache_entry_is_rewritten_by_the_next_run(tmp_path):
@@ -45,3 +50,16 @@ def test_a_corrupt_cache_entry_is_rewritten_by_the_next_run(tmp_path):
         data = path.read_bytes()
         assert data != b"not a flatbuffer", f"{path.name} was not rewritten"
         export.deserialize(bytearray(data))  # whole and readable again
+
+
+def test_a_repeated_fit_loads_its_trace_without_the_solver_libraries(tmp_path):
+    # optimistix, lineax, equinox and jaxtyping take ~0.5 s to import; a fit
+    # whose trace and outcome table are on disk must not need them.
+    first = run_fit(tmp_path)
+    assert "optimistix" in first  # traced: the solver library was needed
+    assert sorted(tmp_path.glob("fitter-outcomes-*.json"))
+    assert run_fit(tmp_path) == set()
+    for path in tmp_path.glob("fitter-outcomes-*.json"):
+        path.write_text("{not json")  # a broken table: read from optimistix again
+    assert "optimistix" in run_fit(tmp_path)
+    assert run_fit(tmp_path) == set()

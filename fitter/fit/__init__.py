@@ -1,8 +1,9 @@
 """Fit engine: recover material parameters from a target image (optimistix).
 
 ``fitter.fit.fit(target, scene, material, ...) -> FitResult``; the module is
-callable as ``fitter.fit(...)`` too (``fitter._modules``). The engine (JAX,
-optimistix) loads on first use; ``SOLVERS`` and ``LOSSES`` do not need it.
+callable as ``fitter.fit(...)`` too (``fitter._modules``). The engine (JAX)
+loads on first use, optimistix only to trace a solve (a solve whose trace is
+cached on disk runs without it); ``SOLVERS`` and ``LOSSES`` need neither.
 """
 
 import importlib as _importlib

@@ -1,13 +1,14 @@
 """Traced solvers kept on disk, so a repeated job neither traces nor compiles.
 
 JAX's persistent compilation cache (enabled by the CLI, see
-``fitter.cli._enable_compilation_cache``) only skips XLA's compilation; tracing
+``fitter.compilation_cache``) only skips XLA's compilation; tracing
 an optimistix solve through the renderer still costs about a second. When that
 cache is on, the traced function is also exported (``jax.export``, StableHLO
 serialised with flatbuffers) next to it and reloaded by later processes; XLA
 then finds the compiled code in its own cache. The file name hashes the call's
-structure and shapes, the JAX version and the fitter sources, so a change of
-any of them traces anew. Any problem with the files falls back to tracing.
+structure and shapes, the JAX and solver libraries' versions and the fitter
+sources, so a change of any of them traces anew. A cached trace runs without
+optimistix (``_solvers.outcome_table`` names its result codes). Any problem with the files falls back to tracing.
 """
 
 from __future__ import annotations
@@ -34,7 +35,9 @@ for _cls in (Data, Geometry, Cosines, EnvData):
 @functools.lru_cache(maxsize=1)
 def _source_fingerprint() -> str:
     root = pathlib.Path(__file__).resolve().parents[1]
-    h = hashlib.sha256(jax.__version__.encode())
+    from ._solvers import _library_versions  # a trace holds their code and result codes
+
+    h = hashlib.sha256((jax.__version__ + _library_versions()).encode())
     for path in sorted(root.rglob("*.py")):
         h.update(path.read_bytes())
     return h.hexdigest()

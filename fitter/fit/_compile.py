@@ -9,7 +9,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from ._cache import compile_cached
 from ._problem import Spec, residuals
@@ -45,6 +44,16 @@ def jacobian_full(spec: Spec, z, data):
     return jax.jacfwd(lambda z: (residuals(z, data, spec),) * 2, has_aux=True)(z)
 
 
+def gauss_newton_step(spec: Spec, z, data):
+    """At ``z``: (R (n, n), r (N,), J (N, n), the Gauss-Newton step dz (n,), cost).
+
+    dz solves the normal equations J^T J dz = -J^T r (Cholesky; p x p, as
+    the solvers' ``_solvers._normal``)."""
+    J, r = jax.jacfwd(lambda z: (residuals(z, data, spec),) * 2, has_aux=True)(z)
+    dz = -jax.scipy.linalg.solve(J.T @ J, J.T @ r, assume_a="pos")
+    return jnp.linalg.qr(J, mode="r"), r, J, dz, 0.5 * jnp.sum(r * r)
+
+
 def r_factor(J) -> np.ndarray:
     """R factor (n, n) in float64 of a Jacobian, or R itself, from ``jacobian_r``."""
     J = np.asarray(J, dtype=np.float64)
@@ -60,12 +69,14 @@ def best_start(costs, zs, xp=np):
 def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps: int):
     """Compiled entry: starts (S, n) -> (z, code, steps, cost) per start, the
     best start's index, and ``jacobian_r`` there (the diagnostics)."""
-    solver = make_solver(solver_name, rtol, atol)
-
     def fn(z, data):
         return residuals(z, data, spec)
 
     def one(z0, data):
+        # optimistix only when tracing (0.5 s to import): a cached trace does without it
+        import optimistix as optx
+
+        solver = make_solver(solver_name, rtol, atol)
         sol = optx.least_squares(fn, solver, z0, args=data, max_steps=max_steps, throw=False)
         info = getattr(sol.state, "f_info", None)
         # optimistix's solver state is not public API: anything else falls back.
@@ -74,17 +85,18 @@ def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps:
             # Gauss-Newton family: the solver's last accepted linearisation is at
             # sol.value; materialising it costs n cheap tangents, not a new Jacobian.
             r, J = info.residual, info.jac.as_matrix()
-            jr = (jnp.linalg.qr(J, mode="r") if J.dtype == jnp.float64 else J, r)
         else:
-            jr = jacobian_r(spec, sol.value, data)
-        r = jr[1]
+            J, r = jacobian_full(spec, sol.value, data)
+        # The whole J too: the covariance's block sandwich needs its rows
+        # (``jac_full``), and returning it spares a linearisation after the fit.
+        jr = (jnp.linalg.qr(J, mode="r") if J.dtype == jnp.float64 else J, r, J)
         return (sol.value, result_code(sol.result), sol.stats["num_steps"],
                 0.5 * jnp.sum(r * r), jr)
 
     def many(z0s, data):
-        zs, codes, steps, costs, (Rs, rs) = jax.lax.map(lambda z0: one(z0, data), z0s)
+        zs, codes, steps, costs, (Rs, rs, Js) = jax.lax.map(lambda z0: one(z0, data), z0s)
         best = best_start(costs, zs, jnp)
-        return zs, codes, steps, costs, best, (Rs[best], rs[best])
+        return zs, codes, steps, costs, best, (Rs[best], rs[best], Js[best])
 
     return many
 
@@ -96,7 +108,7 @@ def _batch_fn(spec: Spec, batch: str, **static):
     def single(z0, target, weights, data):
         zs, codes, steps, costs, _, jr = one(z0[None], data._replace(target=target,
                                                                    weights=weights))
-        return zs[0], codes[0], steps[0], costs[0], jr
+        return zs[0], codes[0], steps[0], costs[0], jr[:2]  # (R, r): B whole Js are large
 
     def run(z0, data):
         if batch == "vmap":
@@ -123,6 +135,8 @@ def compiled(kind: str, spec: Spec, args, **static):
         f = _batch_fn(spec, **static)
     elif kind == "jacfull":
         f = functools.partial(jacobian_full, spec)
+    elif kind == "gauss_newton":
+        f = functools.partial(gauss_newton_step, spec)
     else:  # Jacobian (as its R factor in float64) and residuals in one pass
         f = functools.partial(jacobian_r, spec)
     # optimistix creates some constants (e.g. LM's damping) as Python floats, which
@@ -130,8 +144,9 @@ def compiled(kind: str, spec: Spec, args, **static):
     single = jnp.result_type(args[0]) == jnp.float32
     t0 = time.perf_counter()
     with jax.enable_x64(not single):
-        exe = compile_cached(f, args, repr(key),
-                             None if kind in ("jacres", "jacfull") else SOLVE_XLA_OPTIONS)
+        exe = compile_cached(f, args, repr(key), None if kind in ("jacres", "jacfull",
+                                                                   "gauss_newton")
+                             else SOLVE_XLA_OPTIONS)
     _COMPILED[key] = exe
     return exe, time.perf_counter() - t0
 
@@ -148,8 +163,44 @@ def jac_res(spec: Spec, z, data):
     return r_factor(R), np.asarray(r, dtype=np.float64), tc
 
 
+#: The last solution's whole Jacobian (``remember_jacobian``); one only, and
+#: dropped once used: at 1024^2 one is ~130 MB.
+_JACOBIANS: dict = {}
+_KEEP_JACOBIANS = 1
+
+
+def _jacobian_key(spec: Spec, z, data):
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    for a in (z, data.target, data.weights):
+        a = np.asarray(a)
+        h.update(str((a.shape, a.dtype)).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    for k in sorted(data.fixed):
+        h.update(k.encode())
+        h.update(np.asarray(data.fixed[k], dtype=np.float64).tobytes())
+    return spec, h.hexdigest()
+
+
+def remember_jacobian(spec: Spec, z, data, J, r) -> None:
+    """Keep the solver's last linearisation (J (N, n), r (N,)) at its solution
+    ``z``, so that ``jac_full`` there returns it instead of linearising again."""
+    key = _jacobian_key(spec, z, data)
+    _JACOBIANS.pop(key, None)
+    _JACOBIANS[key] = (np.asarray(J, dtype=np.float64), np.asarray(r, dtype=np.float64))
+    while len(_JACOBIANS) > _KEEP_JACOBIANS:
+        _JACOBIANS.pop(next(iter(_JACOBIANS)))
+
+
 def jac_full(spec: Spec, z, data):
-    """(J (N, n), residuals (N,), compile seconds) at ``z``, float64 NumPy."""
+    """(J (N, n), residuals (N,), compile seconds) at ``z``, float64 NumPy.
+
+    The solver's own linearisation when ``z`` is a solution it returned
+    (``remember_jacobian``: the same J, spared a second linearisation)."""
+    known = _JACOBIANS.pop(_jacobian_key(spec, z, data), None)
+    if known is not None:
+        return known[0], known[1], 0.0
     z = jnp.asarray(z, dtype=data.target.dtype)
     exe, tc = compiled("jacfull", spec, (z, data))
     J, r = exe(z, data)

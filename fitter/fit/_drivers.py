@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import jax
@@ -18,8 +18,8 @@ import numpy as np
 
 from ..limits import check_fit
 from ..scene import Scene
-from . import _args
-from ._compile import compiled, jac_res, r_factor
+from . import _args, _coarse
+from ._compile import best_start, compiled, jac_res, r_factor, remember_jacobian
 from ._covariance import residual_variance
 from ._identify import WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction
 from ._problem import blocks_of, format_value, user_values, z_from_params
@@ -43,7 +43,8 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         noise_sigma: float | None = None, loss: str = "l2", loss_scale: float | None = None,
         saturation: float | None = None, n_starts: int = 1, max_steps: int | None = None,
         rtol: float = 1e-6, atol: float = 1e-8, dtype=jnp.float64,
-        base_dir: str | None = None, identifiability: bool = True) -> FitResult:
+        base_dir: str | None = None, identifiability: bool = True,
+        progress: Callable[[str], None] | None = None) -> FitResult:
     """Fit the material's parameters to a target image.
 
     Args:
@@ -72,6 +73,10 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         max_steps, rtol, atol: solver budget and tolerances.
         dtype: ``jnp.float64`` (default) or ``jnp.float32``.
         identifiability: hold and report parameters the data cannot constrain.
+        progress: called with a short line as the fit advances (the step
+            reached; after each start its steps and cost), e.g. to update a
+            spinner. The compiled solve cannot call back into Python (its
+            trace is cached on disk), so the finest grain is one start.
 
     Returns:
         A ``FitResult``; failures are reported in ``status``/``message``,
@@ -99,41 +104,84 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                            exclude=exclude, weights=weights, noise_sigma=noise_sigma, loss=loss,
                            loss_scale=loss_scale, saturation=saturation, max_steps=max_steps,
                            rtol=rtol, atol=atol, dtype=dtype, base_dir=base_dir)
+    say = progress or _quiet
     t_compile = 0.0
     if identifiability:
+        say("checking which parameters the pixels depend on")
         problem, t_compile = _hold_dead_columns(problem)
         if not problem.blocks:
             return all_held(problem, 0, t_compile, 0.0)
     data = problem.data(0)
-    z0s = problem.cast(make_starts(problem.spec, problem.z_init(), n_starts))
-    solve, tc = compiled("solve", problem.spec, (z0s, data), **problem.static)
+    z0s = make_starts(problem.spec, problem.z_init(), n_starts)
+    first = None
+    if _coarse.eligible(problem.renderer.scene, mask=mask, exclude=exclude, weights=weights,
+                        saturation=saturation, loss=loss, dtype=dtype, n_starts=n_starts):
+        first = _coarse.solve(problem, target.reshape(target.shape[-3:]), z0s, data,
+                              solve_starts, say, base_dir)
+    if first is None:
+        first = solve_starts(problem, z0s, data, say)
+    zs, codes, nsteps, costs, best, (R, r), tc = first
     t_compile += tc
-    zs, codes, nsteps, costs, best, (R, r) = solve(z0s, data)
-    zs, codes, nsteps, costs, best = (np.asarray(a) for a in (zs, codes, nsteps, costs, best))
     note = None
     if n_starts == 1 and identifiability:
         eig, along = weak_direction(problem.spec, r_factor(R))
         if eig < WEAK_EIG:  # a valley: look from several starts (and check ambiguity)
-            z0s = problem.cast(make_starts(problem.spec, problem.z_init(), AUTO_STARTS))
-            solve, tc = compiled("solve", problem.spec, (z0s, data), **problem.static)
+            z0s = make_starts(problem.spec, problem.z_init(), AUTO_STARTS)
+            zs, codes, nsteps, costs, best, (R, r), tc = solve_starts(
+                problem, z0s, data, say, "weakly identified: ")
             t_compile += tc
-            zs, codes, nsteps, costs, best, (R, r) = solve(z0s, data)
-            zs, codes, nsteps, costs, best = (np.asarray(a)
-                                              for a in (zs, codes, nsteps, costs, best))
             note = (f"weakly identified at the first solution (correlation eigenvalue "
                     f"{eig:.2g} < {WEAK_EIG:g}, along {', '.join(along)}): solved from "
                     f"{AUTO_STARTS} starts to check for a valley or another minimum")
     starts = [{"params": user_values(problem.spec, zs[i], data.fixed), "cost": float(costs[i]),
                "status": start_status(int(codes[i]), zs[i], costs[i])}
               for i in range(len(costs))]
+    say("checking identifiability and the stated errors")
     res = _finish(problem, 0, zs[best], int(codes[best]), int(nsteps[best]), float(costs[best]),
                   identifiability=identifiability, t_start=t_start, t_compile=t_compile,
+                  say=say,
                   starts=starts, jr=(r_factor(R), np.asarray(r, dtype=np.float64)),
                   alternatives=[(zs[i], float(costs[i])) for i in range(len(costs))
                                 if i != best])
     if note:
         res.warnings.append(note)
     return res
+
+
+def _quiet(text: str) -> None:
+    pass
+
+
+def solve_starts(problem: Problem, z0s, data, say=_quiet, what: str = ""):
+    """Solve from each start (S, n) in turn, one compiled call per start.
+
+    Returns (zs (S, n), codes, steps, costs (S,), best index, (R, r) at the
+    best, compile seconds), as the compiled multi-start solve gives them. A
+    call per start costs nothing on CPU (a ``lax.map`` runs the starts one by
+    one too), reuses one executable for any number of starts, and lets
+    ``say`` report each start's steps and cost while the fit runs.
+    """
+    z0s = np.asarray(z0s)
+    one = problem.cast(z0s[:1])
+    solve, t_compile = compiled("solve", problem.spec, (one, data), **problem.static)
+    outs = []
+    n = len(z0s)
+    for i in range(n):  # the line stands while the start solves
+        best_so_far = (f" (best cost so far {min(float(o[3][0]) for o in outs):.4g})"
+                       if outs else "")
+        say(f"{what}solving from start {i + 1}/{n}{best_so_far}")
+        *out, (R, r, J) = jax.tree_util.tree_map(np.asarray, solve(problem.cast(z0s[i:i + 1]),
+                                                                   data))
+        outs.append((*out, (R, r)))
+        say(f"{what}start {i + 1}/{n} done: {int(out[2][0])} steps, cost "
+            f"{float(out[3][0]):.4g}")
+        costs = np.concatenate([o[3] for o in outs])
+        if int(best_start(costs, np.concatenate([o[0] for o in outs]))) == i:
+            best_J = J  # one whole Jacobian kept, not one per start (N x n each)
+    zs, codes, steps, costs = (np.concatenate([o[k] for o in outs]) for k in range(4))
+    best = int(best_start(costs, zs))
+    remember_jacobian(problem.spec, zs[best], data, best_J, outs[best][5][1])
+    return zs, codes, steps, costs, best, outs[best][5], t_compile
 
 
 def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
@@ -223,7 +271,7 @@ def _hold_dead_columns(problem: Problem) -> tuple[Problem, float]:
 
 def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,
             identifiability: bool, t_start: float, t_compile: float, starts: list,
-            refit: bool = True, jr=None, alternatives=()) -> FitResult | None:
+            refit: bool = True, jr=None, alternatives=(), say=_quiet) -> FitResult | None:
     """Check, refit without unidentifiable parameters, and report target ``b``.
 
     ``jr``: (R, r) at ``z`` if the solve returned them (``jac_res``).
@@ -268,13 +316,11 @@ def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,
         if not problem.blocks:
             return all_held(problem, b, t_compile, time.perf_counter() - t_start - t_compile)
         spec, data = problem.spec, problem.data(b)
-        z0s = problem.cast(np.stack([z_from_params(spec, {**problem.init_full, **{
-            k: v for k, v in p.items() if k not in keys}}, START_MARGIN) for p in points]))
-        solve, tc = compiled("solve", spec, (z0s, data), **problem.static)
+        z0s = np.stack([z_from_params(spec, {**problem.init_full, **{
+            k: v for k, v in p.items() if k not in keys}}, START_MARGIN) for p in points])
+        zs, codes, nsteps, costs, best_i, (J, r), tc = solve_starts(
+            problem, z0s, data, say, f"refit with {', '.join(keys)} held: ")
         t_compile += tc
-        zs, codes, nsteps, costs, best_i, (J, r) = solve(z0s, data)
-        zs, codes, nsteps, costs = (np.asarray(x) for x in (zs, codes, nsteps, costs))
-        best_i = int(best_i)
         z, code, cost = zs[best_i], int(codes[best_i]), float(costs[best_i])
         iters += int(nsteps[best_i])
         J, r = r_factor(J), np.asarray(r, dtype=np.float64)

@@ -110,14 +110,14 @@ def ambiguous(spec: Spec, z, J, s2: float, cost: float, alternatives):
     32^2 (m = 0.0054 +- 0.0001 by one start, 0.003 by another, delta chi^2 =
     6.6) and at eta = 1 (m = 1.0 +- 0.09 against 0.003, delta chi^2 = 2.7).
     """
-    from scipy.special import chdtri  # scipy.stats costs 0.4-0.7 s to import
-
     alternatives = [(za, ca) for za, ca in alternatives
                     if np.isfinite(ca) and np.all(np.isfinite(za))]
     if not alternatives:
         return None
     if not s2 > 0:
         return None
+    from scipy.special import chdtri  # 0.1 s to import: only with other starts
+
     cov, sd, _ = covariance(spec, z, J, s2)
     level = chdtri(spec.n, 1.0 - AMBIGUOUS_LEVEL)  # chi2.ppf(AMBIGUOUS_LEVEL, n)
     # Were the cost quadratic, no point of the region would lie further than

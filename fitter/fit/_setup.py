@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._math import to_device
 from ..material import EXPOSURE_KEY, Material
 from ..render import Renderer, cached_renderer
 from .. import checks
@@ -73,7 +74,7 @@ def _fitted_geometry(renderer: Renderer, rows: bytes):
     of one scene (a series of images, a batch) select the same pixels.
     """
     idx = np.frombuffer(rows, dtype=np.int64)
-    return jax.tree_util.tree_map(jnp.asarray, renderer.geometry.subset(idx)._replace(
+    return jax.tree_util.tree_map(to_device, renderer.geometry.subset(idx)._replace(
         pixel_index=None, background_image=None))
 
 
@@ -286,7 +287,9 @@ class Problem:
                    noise=np.asarray(noise))
 
     def cast(self, a):
-        return jnp.asarray(a, dtype=self.dtype)
+        if isinstance(a, jax.Array):
+            return jnp.asarray(a, dtype=self.dtype)
+        return to_device(a, self.dtype)
 
     @property
     def spec(self) -> Spec:

@@ -3,13 +3,17 @@ what its result codes mean."""
 
 from __future__ import annotations
 
+import json
+import os
+
 import jax
-import lineax as lx
 import numpy as np
-import optax
-import optimistix as optx
 
 from ._names import SOLVERS
+
+# optimistix, lineax and optax (0.5 s to import with equinox and jaxtyping) are
+# imported only to trace a solve: a fit whose trace is on disk (``_cache``) and
+# whose outcome table is stored (``outcome_table``) never loads them.
 
 #: Adam's learning rate in the unconstrained coordinates (all O(1)).
 ADAM_LEARNING_RATE = 0.05
@@ -25,6 +29,8 @@ def _normal():
     Jacobian (measured 3.5x faster per LM fit at 256^2); the squared
     condition number is harmless in float64 for O(1) coordinates.
     """
+    import lineax as lx
+
     return lx.Normal(lx.Cholesky())
 
 
@@ -33,15 +39,26 @@ def _normal():
 #: divergence is reported as a failed fit, never returned as a result.
 #: ``bfgs`` and ``adam`` minimise 0.5 * sum(r^2) as a scalar; ``adam`` is a
 #: first-order baseline for the benchmarks and needs many more steps.
+def _optx():
+    import optimistix
+
+    return optimistix
+
+
+def _adam(rtol, atol):
+    import optax
+
+    return _optx().OptaxMinimiser(optax.adam(ADAM_LEARNING_RATE), rtol=rtol, atol=atol)
+
+
 _MAKERS = {
-    "levenberg_marquardt": lambda rtol, atol: optx.LevenbergMarquardt(
+    "levenberg_marquardt": lambda rtol, atol: _optx().LevenbergMarquardt(
         rtol=rtol, atol=atol, linear_solver=_normal()),
-    "dogleg": lambda rtol, atol: optx.Dogleg(rtol=rtol, atol=atol, linear_solver=_normal()),
-    "gauss_newton": lambda rtol, atol: optx.GaussNewton(
+    "dogleg": lambda rtol, atol: _optx().Dogleg(rtol=rtol, atol=atol, linear_solver=_normal()),
+    "gauss_newton": lambda rtol, atol: _optx().GaussNewton(
         rtol=rtol, atol=atol, linear_solver=_normal()),
-    "bfgs": lambda rtol, atol: optx.BFGS(rtol=rtol, atol=atol),
-    "adam": lambda rtol, atol: optx.OptaxMinimiser(optax.adam(ADAM_LEARNING_RATE),
-                                                   rtol=rtol, atol=atol),
+    "bfgs": lambda rtol, atol: _optx().BFGS(rtol=rtol, atol=atol),
+    "adam": _adam,
 }
 
 # The registry implements exactly the names the config reader accepts.
@@ -49,6 +66,11 @@ assert tuple(_MAKERS) == SOLVERS, "fitter.fit._names.SOLVERS lists the solvers"
 
 #: Default step budgets of the solvers that need more than ``DEFAULT_MAX_STEPS``.
 MAX_STEPS = {"adam": 5000, "bfgs": 1000}
+
+
+#: The message of a fit that ran out of steps (optimistix's names a root-find).
+MAX_STEPS_MESSAGE = ("the solver used its whole step budget (max_steps) without meeting its "
+                     "tolerances; raise fit.max_steps, or start closer to the answer")
 
 
 def make_solver(name: str, rtol: float, atol: float):
@@ -74,6 +96,62 @@ def result_code(result):
     return code
 
 
+def _library_versions() -> str:
+    """Versions of the solver libraries, which fix what a result code means."""
+    from importlib import metadata
+
+    out = []
+    for name in ("optimistix", "lineax", "equinox", "optax"):
+        try:
+            out.append(f"{name}={metadata.version(name)}")
+        except metadata.PackageNotFoundError:
+            out.append(f"{name}=?")
+    return ",".join(out)
+
+
+_TABLE: dict = {}
+
+
+def outcome_table() -> dict[int, tuple[str, str]]:
+    """code -> (status, optimistix's message) of this optimistix, read from a small
+    JSON file next to the trace cache when there is one (importing optimistix
+    only to name a code costs 0.5 s); written on the first use."""
+    if _TABLE:
+        return _TABLE
+    folder = jax.config.jax_compilation_cache_dir
+    path = None
+    if folder:
+        import hashlib
+
+        tag = hashlib.sha256(_library_versions().encode()).hexdigest()[:16]
+        path = os.path.join(folder, f"fitter-outcomes-{tag}.json")
+        try:
+            with open(path, encoding="utf-8") as fh:
+                _TABLE.update({int(k): tuple(v) for k, v in json.load(fh).items()})
+            return _TABLE
+        except (OSError, ValueError, TypeError):
+            pass
+    optx = _optx()
+    code = 0
+    while (item := result_item(code)) is not None:
+        if bool(item == optx.RESULTS.successful):
+            status = "converged"
+        elif bool(item == optx.RESULTS.nonlinear_max_steps_reached):
+            status = "max_steps"
+        else:
+            status = "failed"
+        _TABLE[code] = (status, optx.RESULTS[item])
+        code += 1
+    if path:
+        from ._cache import _store
+
+        try:
+            _store(folder, path, json.dumps({str(k): v for k, v in _TABLE.items()}).encode())
+        except OSError:
+            pass
+    return _TABLE
+
+
 def result_item(code: int):
     """The ``optx.RESULTS`` item of a code from ``result_code``, or None.
 
@@ -81,6 +159,7 @@ def result_item(code: int):
     whose one leaf is its code, so it is rebuilt from that structure. None if
     a later optimistix changes it (callers then say only "failed").
     """
+    optx = _optx()
     try:
         tree = jax.tree_util.tree_structure(optx.RESULTS.successful)
         item = jax.tree_util.tree_unflatten(tree, [np.asarray(code, dtype=np.int32)])
@@ -92,12 +171,11 @@ def result_item(code: int):
 
 def solver_outcome(code: int) -> tuple[str, str]:
     """(status, message) of a solver code: status ``"converged"``,
-    ``"max_steps"`` or ``"failed"``; the message is optimistix's."""
-    item = result_item(code)
-    if item is None:
+    ``"max_steps"`` or ``"failed"``; the message is optimistix's, except the
+    product's own ``MAX_STEPS_MESSAGE``."""
+    found = outcome_table().get(int(code))
+    if found is None:
         return "failed", f"optimistix result code {code}"
-    if bool(item == optx.RESULTS.successful):
-        return "converged", optx.RESULTS[item]
-    if bool(item == optx.RESULTS.nonlinear_max_steps_reached):
-        return "max_steps", optx.RESULTS[item]
-    return "failed", optx.RESULTS[item]
+    if found[0] == "max_steps":  # optimistix's text speaks of root-finds
+        return "max_steps", MAX_STEPS_MESSAGE
+    return found
