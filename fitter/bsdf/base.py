@@ -29,7 +29,10 @@ A lobe is one of two kinds:
 * ``"specular"``: a delta lobe (mirror, smooth dielectric) that only sees the
   environment; ``radiance(p, opts, hit, env) -> (..., 3)`` returns the
   outgoing radiance towards the camera (``hit``: a ``SurfaceHit``; ``env``: a
-  callable direction (..., 3) -> RGB radiance (..., 3)).
+  callable direction (..., 3) -> RGB radiance (..., 3)). Optionally
+  ``radiance_grad(p, opts, hit, env) -> (radiance, {name: d radiance / d
+  name})`` gives its derivatives by hand, each (..., 3) (an RGB parameter:
+  the diagonal, channel c by its channel c), as ``shape_grad`` does.
 
 Lobes add (the lecture's linearity of BRDFs). Adding a lobe is one module
 defining ``LOBE = Lobe(...)`` plus one entry in ``fitter.bsdf.registry``: the
@@ -222,6 +225,7 @@ class Lobe:
     shape: Callable | None = None
     shape_grad: Callable | None = None
     radiance: Callable | None = None
+    radiance_grad: Callable | None = None
     doc: str = ""
     mitsuba: MitsubaMapping | None = None
     transmissive: bool = False

@@ -39,8 +39,9 @@ from .mitsuba_map import MitsubaMapping, absorbing_medium
 MITSUBA_EXTRA_DEPTH = 3
 
 
-def _radiance(p, opts, hit, env):
-    eta, att = p["eta"], p["attenuation"]
+def _series(eta, att, opts, hit, env, with_att_grad=False):
+    """Radiance (..., 3) and, if ``with_att_grad``, its derivative in each
+    attenuation channel (the diagonal, (..., 3)); else None."""
     d, n = hit.ray_dir, hit.normal
     cos_i = jnp.clip(-dot(d, n), 0.0, 1.0)
     f0 = fresnel_dielectric(cos_i, eta)
@@ -57,20 +58,58 @@ def _radiance(p, opts, hit, env):
     t_out, _ = refract(t, -n1, 1.0 / eta)
     transmit = safe_pow(att, chord[..., None])  # Beer-Lambert over one chord
     scale = radiance_scale(eta) * radiance_scale(1.0 / eta)  # in and out: cancels
-    weight = ((1.0 - f0) * (1.0 - f1) * scale)[..., None] * transmit
+    first = ((1.0 - f0) * (1.0 - f1) * scale)[..., None]
     step = f1[..., None] * transmit
     cos_phi = dot(n, n1)[..., None]
     axis = jnp.cross(n, n1)  # |axis| = sin(phi); exits lie in the plane normal to it
+    rotate = lambda v: v * cos_phi + jnp.cross(axis, v)  # noqa: E731
 
-    def crossing(carry, _):
-        out, weight, v = carry
-        out = out + weight * env(v)
-        return (out, weight * step, v * cos_phi + jnp.cross(axis, v)), None
+    if not with_att_grad:
+        def crossing(carry, _):
+            out, weight, v = carry
+            return (out + weight * env(v), weight * step, rotate(v)), None
 
-    # A scan, not a Python loop: compile time does not grow with ``bounces``.
-    (out, _, _), _ = jax.lax.scan(crossing, (out, weight, t_out), None,
-                                  length=opts["bounces"] + 1)
-    return out
+        # A scan, not a Python loop: compile time does not grow with ``bounces``.
+        (out, _, _), _ = jax.lax.scan(crossing, (out, first * transmit, t_out), None,
+                                      length=opts["bounces"] + 1)
+        return out, None
+
+    # d c^s / dc = s c^s / c (0 at c = 0, the box edge, where it is s c^(s-1)).
+    pos = att > 0
+    d_transmit = jnp.where(pos, chord[..., None] * transmit / jnp.where(pos, att, 1.0), 0.0)
+    d_step = f1[..., None] * d_transmit
+
+    def crossing_grad(carry, _):
+        out, d_out, weight, d_weight, v = carry
+        e = env(v)
+        return (out + weight * e, d_out + d_weight * e, weight * step,
+                d_weight * step + weight * d_step, rotate(v)), None
+
+    (out, d_out, _, _, _), _ = jax.lax.scan(
+        crossing_grad, (out, jnp.zeros_like(out), first * transmit, first * d_transmit, t_out),
+        None, length=opts["bounces"] + 1)
+    return out, d_out
+
+
+def _radiance(p, opts, hit, env):
+    return _series(p["eta"], p["attenuation"], opts, hit, env)[0]
+
+
+def _radiance_grad(p, opts, hit, env):
+    """Radiance and its derivatives {eta: (..., 3), attenuation: diagonal (..., 3)}.
+
+    The attenuation enters only the path weights, so its derivatives are
+    summed alongside the series; eta moves every direction and is one
+    forward-mode tangent. Autodiff of the whole lobe pushed four tangents
+    (eta and three channels) through every environment lookup: 5x the
+    cost of the value; this is ~2x (``tests/test_stability.py`` checks it
+    against ``jax.jacfwd``).
+    """
+    eta = jnp.asarray(p["eta"])
+    (out, d_att), (d_eta, _) = jax.jvp(
+        lambda e: _series(e, p["attenuation"], opts, hit, env, with_att_grad=True),
+        (eta,), (jnp.ones_like(eta),))
+    return out, {"eta": d_eta, "attenuation": d_att}
 
 
 def _mitsuba(p, opts):
@@ -90,6 +129,7 @@ LOBE = Lobe(
     # the work a config may ask for (1e8 bounces once ran for 10 minutes).
     options=(Option("bounces", None, 8, "internal reflections followed", most=64),),
     radiance=_radiance,
+    radiance_grad=_radiance_grad,
     doc="Fresnel reflection + Snell refraction through the sphere, total internal reflection, "
         "η² radiance scaling (cancels on a full pass), Beer-Lambert c^d with d in world units",
     transmissive=True,
