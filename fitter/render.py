@@ -180,7 +180,9 @@ def _specular(lobe, p, opts, geo: Geometry, env: EnvData, sphere, env_type):
 
     def radiance_and_jac(theta, geo, env, sphere):
         g, dg = call(lobe.radiance_grad, theta, geo, env, sphere)
-        out = pixel_sum(_columns(g, dg, unflatten(theta)), geo)
+        # Summed over samples first (linear), then spread over the columns.
+        out = _columns(pixel_sum(g, geo), {k: pixel_sum(v, geo) for k, v in dg.items()},
+                       unflatten(theta))
         return out[0], jnp.moveaxis(out[1:], 0, -1)
 
     return _with_local_jacobian(radiance, theta, geo, env, sphere,

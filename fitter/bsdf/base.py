@@ -33,6 +33,9 @@ A lobe is one of two kinds:
   ``radiance_grad(p, opts, hit, env) -> (radiance, {name: d radiance / d
   name})`` gives its derivatives by hand, each (..., 3) (an RGB parameter:
   the diagonal, channel c by its channel c), as ``shape_grad`` does.
+  Optionally ``start_search(p, opts, hit, env, cost, free, box) -> p``
+  finds a start for the solver by a coarse search where the cost has narrow
+  basins (``fitter.fit._search``).
 
 Lobes add (the lecture's linearity of BRDFs). Adding a lobe is one module
 defining ``LOBE = Lobe(...)`` plus one entry in ``fitter.bsdf.registry``: the
@@ -226,6 +229,7 @@ class Lobe:
     shape_grad: Callable | None = None
     radiance: Callable | None = None
     radiance_grad: Callable | None = None
+    start_search: Callable | None = None
     doc: str = ""
     mitsuba: MitsubaMapping | None = None
     transmissive: bool = False

@@ -39,18 +39,18 @@ from .mitsuba_map import MitsubaMapping, absorbing_medium
 MITSUBA_EXTRA_DEPTH = 3
 
 
-def _series(eta, att, opts, hit, env, with_att_grad=False):
-    """Radiance (..., 3) and, if ``with_att_grad``, its derivative in each
-    attenuation channel (the diagonal, (..., 3)); else None."""
+def _crossing(eta, att, hit):
+    """What the first crossing fixes for every later one, each (...[, 3]): the
+    front reflectance F_0, the first exit's weight, the per-bounce factor
+    F_1 c^s, the first exit direction, the rotation (cos phi, axis) taking
+    each exit to the next, and the chord s."""
     d, n = hit.ray_dir, hit.normal
     cos_i = jnp.clip(-dot(d, n), 0.0, 1.0)
     f0 = fresnel_dielectric(cos_i, eta)
-    out = f0[..., None] * env(reflect(d, n))
-
-    # The first crossing; by the sphere's symmetry every later one repeats it:
-    # the same chord s, the same internal angle (so the same Fresnel F_1 and
-    # attenuation c^s), and each exit direction is the previous one rotated
-    # about n x n_1 by the angle between the two hit normals.
+    # By the sphere's symmetry every crossing repeats the first: the same chord
+    # s, the same internal angle (so the same Fresnel F_1 and attenuation
+    # c^s), and each exit direction is the previous one rotated about n x n_1
+    # by the angle between the two hit normals.
     t, _ = refract(d, n, eta)
     chord = jnp.maximum(-2.0 * dot(hit.position - hit.center, t), 0.0)
     n1 = normalize(hit.position + chord[..., None] * t - hit.center)
@@ -58,58 +58,131 @@ def _series(eta, att, opts, hit, env, with_att_grad=False):
     t_out, _ = refract(t, -n1, 1.0 / eta)
     transmit = safe_pow(att, chord[..., None])  # Beer-Lambert over one chord
     scale = radiance_scale(eta) * radiance_scale(1.0 / eta)  # in and out: cancels
-    first = ((1.0 - f0) * (1.0 - f1) * scale)[..., None]
+    first = ((1.0 - f0) * (1.0 - f1) * scale)[..., None] * transmit
     step = f1[..., None] * transmit
-    cos_phi = dot(n, n1)[..., None]
-    axis = jnp.cross(n, n1)  # |axis| = sin(phi); exits lie in the plane normal to it
-    rotate = lambda v: v * cos_phi + jnp.cross(axis, v)  # noqa: E731
-
-    if not with_att_grad:
-        def crossing(carry, _):
-            out, weight, v = carry
-            return (out + weight * env(v), weight * step, rotate(v)), None
-
-        # A scan, not a Python loop: compile time does not grow with ``bounces``.
-        (out, _, _), _ = jax.lax.scan(crossing, (out, first * transmit, t_out), None,
-                                      length=opts["bounces"] + 1)
-        return out, None
-
-    # d c^s / dc = s c^s / c (0 at c = 0, the box edge, where it is s c^(s-1)).
-    pos = att > 0
-    d_transmit = jnp.where(pos, chord[..., None] * transmit / jnp.where(pos, att, 1.0), 0.0)
-    d_step = f1[..., None] * d_transmit
-
-    def crossing_grad(carry, _):
-        out, d_out, weight, d_weight, v = carry
-        e = env(v)
-        return (out + weight * e, d_out + d_weight * e, weight * step,
-                d_weight * step + weight * d_step, rotate(v)), None
-
-    (out, d_out, _, _, _), _ = jax.lax.scan(
-        crossing_grad, (out, jnp.zeros_like(out), first * transmit, first * d_transmit, t_out),
-        None, length=opts["bounces"] + 1)
-    return out, d_out
+    # |axis| = sin(phi); the exits lie in the plane normal to it.
+    return f0, first, step, t_out, dot(n, n1)[..., None], jnp.cross(n, n1), chord
 
 
 def _radiance(p, opts, hit, env):
-    return _series(p["eta"], p["attenuation"], opts, hit, env)[0]
+    f0, weight, step, v, cos_phi, axis, _ = _crossing(p["eta"], p["attenuation"], hit)
+    out = f0[..., None] * env(reflect(hit.ray_dir, hit.normal))
+
+    def crossing(carry, _):
+        out, weight, v = carry
+        return (out + weight * env(v), weight * step,
+                v * cos_phi + jnp.cross(axis, v)), None
+
+    # A scan, not a Python loop: compile time does not grow with ``bounces``.
+    (out, _, _), _ = jax.lax.scan(crossing, (out, weight, v), None, length=opts["bounces"] + 1)
+    return out
 
 
 def _radiance_grad(p, opts, hit, env):
     """Radiance and its derivatives {eta: (..., 3), attenuation: diagonal (..., 3)}.
 
-    The attenuation enters only the path weights, so its derivatives are
-    summed alongside the series; eta moves every direction and is one
-    forward-mode tangent. Autodiff of the whole lobe pushed four tangents
-    (eta and three channels) through every environment lookup: 5x the
-    cost of the value; this is ~2x (``tests/test_stability.py`` checks it
-    against ``jax.jacfwd``).
+    The first crossing's quantities and their eta derivatives come from one
+    forward-mode tangent; the series then carries d/d eta (through each
+    exit direction's environment lookup) and d/dc (c^s by hand: d c^s / dc
+    = s c^s / c) beside the value. Autodiff of the whole lobe pushed four
+    tangents (eta and three channels) through every lookup.
+    ``tests/test_stability.py`` checks this against ``jax.jacfwd``.
     """
-    eta = jnp.asarray(p["eta"])
-    (out, d_att), (d_eta, _) = jax.jvp(
-        lambda e: _series(e, p["attenuation"], opts, hit, env, with_att_grad=True),
-        (eta,), (jnp.ones_like(eta),))
+    eta, att = jnp.asarray(p["eta"]), p["attenuation"]
+    prim, tang = jax.jvp(lambda e: _crossing(e, att, hit), (eta,), (jnp.ones_like(eta),))
+    f0, weight, step, v, cos_phi, axis, chord = prim
+    df0, dweight, dstep, dv, dcos_phi, daxis, _ = tang
+    e_r = env(reflect(hit.ray_dir, hit.normal))
+    # weight and step are each linear in c^s, and d c^s / dc = s c^s / c; at the
+    # box edge c = 0 the stand-in derivative is 0 (c^s is flat there for s > 1).
+    pos = att > 0
+    s_over_c = jnp.where(pos, chord[..., None] / jnp.where(pos, att, 1.0), 0.0)
+    aweight, astep = weight * s_over_c, step * s_over_c
+
+    def crossing(carry, _):
+        out, d_eta, d_att, w, dw, aw, v, dv = carry
+        e, de = jax.jvp(env, (v,), (dv,))
+        carry = (out + w * e, d_eta + dw * e + w * de, d_att + aw * e,
+                 w * step, dw * step + w * dstep, aw * step + w * astep,
+                 v * cos_phi + jnp.cross(axis, v),
+                 dv * cos_phi + v * dcos_phi + jnp.cross(daxis, v) + jnp.cross(axis, dv))
+        return carry, None
+
+    init = (f0[..., None] * e_r, df0[..., None] * e_r, jnp.zeros_like(e_r),
+            weight, dweight, aweight, v, dv)
+    (out, d_eta, d_att, *_), _ = jax.lax.scan(crossing, init, None, length=opts["bounces"] + 1)
     return out, {"eta": d_eta, "attenuation": d_att}
+
+
+#: The start search's grids: eta - 1 log-spaced over the box (``ETA_POINTS``,
+#: from ``ETA_MIN_EXCESS``), then ``ETA_POINTS`` again over one coarse cell
+#: around the best; the attenuation per channel over ``ATT_POINTS`` values,
+#: logit-spaced in [0.005, 0.998]. Measured (128^2 envmap): eta = 1.001 has a
+#: basin ~0.005 wide, i.e. a factor ~5 in eta - 1, and 40 points over 4.5
+#: decades of eta - 1 are a factor 1.3 apart.
+ETA_POINTS = 40
+ETA_MIN_EXCESS = 1e-4
+ATT_POINTS = 24
+
+
+def _models(eta, atts, opts, hit, env):
+    """Radiance (A, ..., 3) at one eta for each row of ``atts`` (A, 3): the
+    environment is looked up once for all of them (the exits do not depend
+    on the attenuation)."""
+    f0, first, f1, v, cos_phi, axis, chord = _crossing(eta, jnp.ones(3), hit)
+
+    def crossing(v, _):
+        return v * cos_phi + jnp.cross(axis, v), env(v)
+
+    _, exits = jax.lax.scan(crossing, v, None, length=opts["bounces"] + 1)  # (B, ..., 3)
+    base = f0[..., None] * env(reflect(hit.ray_dir, hit.normal))
+    # Exit k carries (1 - F0)(1 - F1) F1^k c^((k + 1) s); ``first`` and ``f1``
+    # are those factors at c = 1.
+    k = jnp.arange(exits.shape[0], dtype=chord.dtype).reshape((-1,) + (1,) * chord.ndim)
+    weight = first[None] * f1[None] ** k[..., None]  # (B, ..., 3)
+    power = ((k + 1) * chord[None])[..., None]  # (B, ..., 1)
+
+    def one(att):  # (3,)
+        return base + jnp.sum(weight * safe_pow(att, power) * exits, axis=0)
+
+    return jax.vmap(one)(atts)
+
+
+def _search(p, opts, hit, env, cost, free, box):
+    """A start for the solver: the lowest ``cost`` over a grid (see ``ETA_POINTS``).
+
+    ``cost(model (..., P, 3)) -> (..., 3)`` per channel; the channels of the
+    attenuation are independent given eta, so each takes its best grid value.
+    ``free``: names of the free parameters; ``box``: their (lower, upper).
+    """
+    att0 = jnp.broadcast_to(jnp.asarray(p["attenuation"]), (3,))
+    if "attenuation" in free:
+        lo, hi = box["attenuation"]
+        u = jnp.linspace(-5.3, 6.2, ATT_POINTS)  # logit of 0.005 .. 0.998
+        grid = jnp.clip(jax.nn.sigmoid(u), lo, hi)
+        atts = jnp.concatenate([jnp.broadcast_to(grid[:, None], (ATT_POINTS, 3)), att0[None]])
+    else:
+        atts = att0[None]
+
+    def best_over(etas):
+        costs = jax.lax.map(lambda e: cost(_models(e, atts, opts, hit, env)), etas)  # (G, A, 3)
+        per_eta = jnp.sum(jnp.min(costs, axis=1), axis=-1)  # each channel's best attenuation
+        i = jnp.argmin(per_eta)
+        return etas[i], atts[jnp.argmin(costs[i], axis=0), jnp.arange(3)], per_eta[i]
+
+    eta0 = jnp.asarray(p["eta"])
+    if "eta" not in free:
+        eta, att, _ = best_over(eta0[None])
+        return {"eta": eta0, "attenuation": att}
+    lo, hi = box["eta"]
+    x_lo, x_hi = jnp.log(max(lo - 1.0, ETA_MIN_EXCESS)), jnp.log(hi - 1.0)
+    xs = jnp.linspace(x_lo, x_hi, ETA_POINTS)
+    eta, _, _ = best_over(jnp.concatenate([1.0 + jnp.exp(xs), eta0[None]]))
+    cell = (x_hi - x_lo) / (ETA_POINTS - 1)
+    x = jnp.log(jnp.maximum(eta - 1.0, ETA_MIN_EXCESS))
+    fine = jnp.clip(jnp.linspace(x - cell, x + cell, ETA_POINTS), x_lo, x_hi)
+    eta, att, _ = best_over(jnp.concatenate([1.0 + jnp.exp(fine), eta[None]]))
+    return {"eta": eta, "attenuation": att}
 
 
 def _mitsuba(p, opts):
@@ -130,6 +203,7 @@ LOBE = Lobe(
     options=(Option("bounces", None, 8, "internal reflections followed", most=64),),
     radiance=_radiance,
     radiance_grad=_radiance_grad,
+    start_search=_search,
     doc="Fresnel reflection + Snell refraction through the sphere, total internal reflection, "
         "η² radiance scaling (cancels on a full pass), Beer-Lambert c^d with d in world units",
     transmissive=True,
