@@ -33,9 +33,13 @@ A lobe is one of two kinds:
   ``radiance_grad(p, opts, hit, env) -> (radiance, {name: d radiance / d
   name})`` gives its derivatives by hand, each (..., 3) (an RGB parameter:
   the diagonal, channel c by its channel c), as ``shape_grad`` does.
-  Optionally ``start_search(p, opts, hit, env, cost, free, box) -> p``
-  finds a start for the solver by a coarse search where the cost has narrow
-  basins (``fitter.fit._search``).
+  Optionally ``start_search`` (a ``StartSearch``) finds a start for the
+  solver by a coarse search where the cost has narrow basins
+  (``fitter.fit._search``). Optionally ``cheapest_options(p, opts, hit,
+  weight, env_max, tolerance) -> {option: value}`` lowers options that set
+  the work (the dielectric's bounce count) as far as what they leave out
+  stays below ``tolerance`` (3,) radiance in every pixel; the fitter passes
+  its noise level.
 
 Lobes add (the lecture's linearity of BRDFs). Adding a lobe is one module
 defining ``LOBE = Lobe(...)`` plus one entry in ``fitter.bsdf.registry``: the
@@ -202,6 +206,22 @@ class Hints:
     reciprocal: bool = True
 
 
+class StartSearch(NamedTuple):
+    """A lobe's coarse search for the solver's start (``fitter.fit._search``).
+
+    ``param``: the parameter scanned over a grid. ``rounds(p, free, box)``:
+    one function per round, (best value so far) -> (G,) grid of ``param``
+    (the start's value is the first round's "best"). ``best(p, opts, hit,
+    env, cost, free, box) -> p``: the lowest ``cost(model (..., P, 3)) ->
+    (..., 3)`` over the grid ``p[param]`` (and whatever else the lobe tries);
+    ``free`` names the free parameters, ``box`` maps them to (lower, upper).
+    """
+
+    param: str
+    rounds: Callable
+    best: Callable
+
+
 @dataclasses.dataclass(frozen=True)
 class Lobe:
     """One BSDF lobe (see the module docstring for ``kind``, ``shape``, ``radiance``).
@@ -229,7 +249,8 @@ class Lobe:
     shape_grad: Callable | None = None
     radiance: Callable | None = None
     radiance_grad: Callable | None = None
-    start_search: Callable | None = None
+    start_search: StartSearch | None = None
+    cheapest_options: Callable | None = None
     doc: str = ""
     mitsuba: MitsubaMapping | None = None
     transmissive: bool = False

@@ -28,9 +28,11 @@ References:
         "Light attenuation" (Beer-Lambert L_a = c^d L_b).
 """
 
+import numpy as np
+
 from .._lazy import jax, jnp
 from .._math import dot, normalize, reflect, safe_pow
-from .base import Lobe, Option, Param
+from .base import Lobe, Option, Param, StartSearch
 from .fresnel import fresnel_dielectric, radiance_scale, refract
 from .mitsuba_map import MitsubaMapping, absorbing_medium
 
@@ -136,53 +138,109 @@ def _models(eta, atts, opts, hit, env):
 
     _, exits = jax.lax.scan(crossing, v, None, length=opts["bounces"] + 1)  # (B, ..., 3)
     base = f0[..., None] * env(reflect(hit.ray_dir, hit.normal))
-    # Exit k carries (1 - F0)(1 - F1) F1^k c^((k + 1) s); ``first`` and ``f1``
-    # are those factors at c = 1.
-    k = jnp.arange(exits.shape[0], dtype=chord.dtype).reshape((-1,) + (1,) * chord.ndim)
-    weight = first[None] * f1[None] ** k[..., None]  # (B, ..., 3)
-    power = ((k + 1) * chord[None])[..., None]  # (B, ..., 1)
+    # Exit k carries (1 - F0)(1 - F1) F1^k c^((k + 1) s) (``first``, ``f1``: at c = 1).
+    terms = first * exits * f1 ** jnp.arange(exits.shape[0], dtype=chord.dtype).reshape(
+        (-1,) + (1,) * f1.ndim)
 
-    def one(att):  # (3,)
-        return base + jnp.sum(weight * safe_pow(att, power) * exits, axis=0)
+    def one(att):  # (3,): sum_k terms_k T^(k+1) by Horner's rule, T = c^s
+        transmit = safe_pow(att, chord[..., None])
+        horner, _ = jax.lax.scan(lambda h, t: (transmit * (t + h), None),
+                                 jnp.zeros_like(base), terms, reverse=True)
+        return base + horner
 
     return jax.vmap(one)(atts)
 
 
+def _att_grid(p, free, box):
+    """(A, 3) attenuations the search tries: the start and, if free, a grid."""
+    att0 = jnp.broadcast_to(jnp.asarray(p["attenuation"]), (3,))
+    if "attenuation" not in free:
+        return att0[None]
+    lo, hi = box["attenuation"]
+    grid = jnp.clip(jax.nn.sigmoid(jnp.linspace(-5.3, 6.2, ATT_POINTS)), lo, hi)  # 0.005..0.998
+    return jnp.concatenate([jnp.broadcast_to(grid[:, None], (ATT_POINTS, 3)), att0[None]])
+
+
 def _search(p, opts, hit, env, cost, free, box):
-    """A start for the solver: the lowest ``cost`` over a grid (see ``ETA_POINTS``).
+    """The lowest ``cost`` over eta values (``p["eta"]`` (G,)) and attenuations.
 
     ``cost(model (..., P, 3)) -> (..., 3)`` per channel; the channels of the
     attenuation are independent given eta, so each takes its best grid value.
     ``free``: names of the free parameters; ``box``: their (lower, upper).
+    Returns the best {eta, attenuation} and its cost.
     """
-    att0 = jnp.broadcast_to(jnp.asarray(p["attenuation"]), (3,))
-    if "attenuation" in free:
-        lo, hi = box["attenuation"]
-        u = jnp.linspace(-5.3, 6.2, ATT_POINTS)  # logit of 0.005 .. 0.998
-        grid = jnp.clip(jax.nn.sigmoid(u), lo, hi)
-        atts = jnp.concatenate([jnp.broadcast_to(grid[:, None], (ATT_POINTS, 3)), att0[None]])
-    else:
-        atts = att0[None]
+    atts = _att_grid(p, free, box)
+    costs = jax.lax.map(lambda e: cost(_models(e, atts, opts, hit, env)), p["eta"])  # (G, A, 3)
+    per_eta = jnp.sum(jnp.min(costs, axis=1), axis=-1)  # each channel's best attenuation
+    i = jnp.argmin(per_eta)
+    return {"eta": p["eta"][i], "attenuation": atts[jnp.argmin(costs[i], axis=0), jnp.arange(3)]}
 
-    def best_over(etas):
-        costs = jax.lax.map(lambda e: cost(_models(e, atts, opts, hit, env)), etas)  # (G, A, 3)
-        per_eta = jnp.sum(jnp.min(costs, axis=1), axis=-1)  # each channel's best attenuation
-        i = jnp.argmin(per_eta)
-        return etas[i], atts[jnp.argmin(costs[i], axis=0), jnp.arange(3)], per_eta[i]
 
-    eta0 = jnp.asarray(p["eta"])
+def _search_grids(p, free, box):
+    """The eta values of the search's rounds: ``grids(best) -> (G,)`` per round
+    (the start's eta is in every round)."""
+    eta0 = float(p["eta"])
     if "eta" not in free:
-        eta, att, _ = best_over(eta0[None])
-        return {"eta": eta0, "attenuation": att}
+        return (lambda best: np.array([eta0]),)
     lo, hi = box["eta"]
-    x_lo, x_hi = jnp.log(max(lo - 1.0, ETA_MIN_EXCESS)), jnp.log(hi - 1.0)
-    xs = jnp.linspace(x_lo, x_hi, ETA_POINTS)
-    eta, _, _ = best_over(jnp.concatenate([1.0 + jnp.exp(xs), eta0[None]]))
+    x_lo, x_hi = np.log(max(lo - 1.0, ETA_MIN_EXCESS)), np.log(hi - 1.0)
     cell = (x_hi - x_lo) / (ETA_POINTS - 1)
-    x = jnp.log(jnp.maximum(eta - 1.0, ETA_MIN_EXCESS))
-    fine = jnp.clip(jnp.linspace(x - cell, x + cell, ETA_POINTS), x_lo, x_hi)
-    eta, att, _ = best_over(jnp.concatenate([1.0 + jnp.exp(fine), eta[None]]))
-    return {"eta": eta, "attenuation": att}
+
+    def coarse(best):
+        return np.append(1.0 + np.exp(np.linspace(x_lo, x_hi, ETA_POINTS)), eta0)
+
+    def fine(best):
+        x = np.log(max(best - 1.0, ETA_MIN_EXCESS))
+        xs = np.clip(np.linspace(x - cell, x + cell, ETA_POINTS), x_lo, x_hi)
+        return np.append(1.0 + np.exp(xs), best)
+
+    return coarse, fine
+
+
+#: The bounce count is chosen at the start point with this much margin: the
+#: attenuation as if half as absorbing (c -> sqrt(c)) and eta - 1 larger by
+#: ``BOUNCE_ETA_MARGIN`` (the untraced part grows with both), so the fit's
+#: path to its solution stays within the bound.
+BOUNCE_ETA_MARGIN = 1.2
+
+
+def untraced_bound(eta, att, cos_i, chord, bounces):
+    """Upper bound (..., 3) on the weight of the internal paths after exit
+    ``bounces``, per unit environment radiance: the geometric series
+    sum_{k > K} (1 - F)^2 F^k T^(k+1) = (1 - F)^2 T (F T)^(K+1) / (1 - F T)
+    with T = c^s; on a sphere the internal reflectance F_1 equals the outer
+    F_0 = F(cos_i, eta) (reciprocity: the internal angle is the refraction
+    angle). NumPy, float64."""
+    c = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)
+    ct = np.sqrt(np.maximum(1.0 - (1.0 - c * c) / (eta * eta), 0.0))
+    den_s, den_p = c + eta * ct, eta * c + ct
+    ok = (den_s > 0) & (den_p > 0)
+    r_s = np.where(ok, (c - eta * ct) / np.where(ok, den_s, 1.0), -1.0)
+    r_p = np.where(ok, (eta * c - ct) / np.where(ok, den_p, 1.0), -1.0)
+    f = (0.5 * (r_s * r_s + r_p * r_p))[..., None]
+    transmit = np.power(np.asarray(att, dtype=np.float64), np.asarray(chord)[..., None])
+    ft = f * transmit
+    den = 1.0 - ft  # 0 only where F = 1 (grazing), where (1 - F)^2 = 0 too
+    return np.where(den > 0, (1.0 - f) ** 2 * transmit * ft ** (bounces + 1)
+                    / np.where(den > 0, den, 1.0), 0.0)
+
+
+def _cheapest(p, opts, hit, weight, env_max, tolerance):
+    """{"bounces": K}: the fewest internal reflections (at most the option's
+    value) for which every pixel's untraced radiance is bounded by
+    ``tolerance`` (3,): sum over its samples of ``weight`` (P, K) *
+    ``untraced_bound`` * ``env_max`` (3,, the brightest the environment is)."""
+    eta = 1.0 + BOUNCE_ETA_MARGIN * (float(p["eta"]) - 1.0)
+    att = np.sqrt(np.broadcast_to(np.asarray(p["attenuation"], dtype=np.float64), (3,)))
+    d, n = np.asarray(hit.ray_dir), np.asarray(hit.normal)
+    cos_i = np.clip(-np.sum(d * n, axis=-1), 0.0, 1.0)
+    cos_t = np.sqrt(np.maximum(1.0 - (1.0 - cos_i ** 2) / eta ** 2, 0.0))
+    chord = 2.0 * float(hit.radius) * cos_t
+    for k in range(opts["bounces"]):
+        tail = np.einsum("pkc,pk->pc", untraced_bound(eta, att, cos_i, chord, k), weight)
+        if np.all(tail * env_max <= tolerance):
+            return {"bounces": k}
+    return {"bounces": opts["bounces"]}
 
 
 def _mitsuba(p, opts):
@@ -203,7 +261,8 @@ LOBE = Lobe(
     options=(Option("bounces", None, 8, "internal reflections followed", most=64),),
     radiance=_radiance,
     radiance_grad=_radiance_grad,
-    start_search=_search,
+    start_search=StartSearch("eta", _search_grids, _search),
+    cheapest_options=_cheapest,
     doc="Fresnel reflection + Snell refraction through the sphere, total internal reflection, "
         "η² radiance scaling (cancels on a full pass), Beer-Lambert c^d with d in world units",
     transmissive=True,

@@ -21,7 +21,7 @@ from ..scene import Scene
 from . import _args
 from ._compile import compiled, jac_res, r_factor
 from ._covariance import residual_variance
-from ._search import searched
+from ._search import cheapened, searched
 from ._identify import WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction
 from ._problem import blocks_of, format_value, user_values, z_from_params
 from ._setup import START_MARGIN, FitError, Problem
@@ -99,7 +99,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                            exclude=exclude, weights=weights, noise_sigma=noise_sigma, loss=loss,
                            loss_scale=loss_scale, saturation=saturation, max_steps=max_steps,
                            rtol=rtol, atol=atol, dtype=dtype, base_dir=base_dir)
-    problem = searched(problem)
+    problem = cheapened(searched(problem))
     t_compile = 0.0
     if identifiability:
         problem, t_compile = _hold_dead_columns(problem)

@@ -1,11 +1,13 @@
-"""A coarse search for the solver's start, for lobes whose cost has narrow
-basins (``Lobe.start_search``; the dielectric's eta near 1).
+"""Before the solve: a coarse search for the start, for lobes whose cost has
+narrow basins (``Lobe.start_search``; the dielectric's eta near 1), and the
+cheapest lobe options whose truncation stays below the noise
+(``Lobe.cheapest_options``; the dielectric's bounce count).
 
 The search sees every ``stride``-th fitted pixel (about ``SEARCH_PIXELS``)
-through one sub-pixel sample each (the one of largest quadrature weight),
-and the plain weighted squared residual: a cheap, rough cost whose minimum is
-near the fit's. The solver then starts there if it beats the given start on
-that cost (the given point is one of the candidates).
+through one sub-pixel sample each (the one of largest quadrature weight) and
+the plain weighted squared residual: a cheap, rough cost whose minimum lies
+near the fit's. The start's own value is among the candidates, so the solver
+never starts from a point the search found worse.
 """
 
 from __future__ import annotations
@@ -19,10 +21,14 @@ import numpy as np
 
 from ..bsdf.base import SurfaceHit
 from ..environment import lookup
-from ..material import lobe_params
+from ..material import Material, lobe_params
 
 #: About this many pixels enter the search.
-SEARCH_PIXELS = 2048
+SEARCH_PIXELS = 1024
+#: What a lobe's options may leave out of any pixel, as a fraction of the noise
+#: level (the given noise_sigma, else the level estimated from the target; that
+#: estimate also counts fine image structure, so it is an upper bound).
+TRUNCATION_NOISE_FRACTION = 0.1
 
 
 @functools.lru_cache(maxsize=8)
@@ -35,38 +41,69 @@ def _searcher(lobe, opts_items, env_type, free, box_items):
         def cost(model):  # (..., P, 3) -> (..., 3)
             return jnp.sum(jnp.square((model - target) * weights), axis=-2)
 
-        return lobe.start_search(p, opts, hit, functools.partial(lookup, env_type, env), cost,
-                                 free, box)
+        return lobe.start_search.best(p, opts, hit, functools.partial(lookup, env_type, env),
+                                      cost, free, box)
 
     return jax.jit(run)
 
 
 def searched(problem):
     """``problem`` with its start (``init_full``) moved to the search's best
-    point, or unchanged (no lobe searches, or the material has more lobes)."""
+    point; unchanged if its material is not one lobe with a search."""
     material = problem.material
-    if len(material.lobes) != 1 or material.lobe_objects[0].start_search is None:
-        return problem
     lobe = material.lobe_objects[0]
-    blocks = {b.key.split(".", 1)[1]: b for b in problem.blocks}
-    if not blocks:
+    if len(material.lobes) != 1 or lobe.start_search is None:
+        return problem
+    free = {b.key.split(".", 1)[1]: (b.lower, b.upper) for b in problem.blocks}
+    if not free:
         return problem
     geo = problem.geometry
     n = int(np.asarray(geo.hit).shape[0])
     rows = np.arange(0, n, max(1, n // SEARCH_PIXELS))
     k = int(np.argmax(np.asarray(geo.sample_weight)))
     pick = lambda a: jnp.asarray(np.asarray(a)[rows, k])  # noqa: E731
-    hit = np.asarray(geo.hit)[rows, k]
-    weights = np.where(hit[:, None], problem.weights[0][rows], 0.0)
-    p0 = {k_: jnp.asarray(v) for k_, v in lobe_params(problem.init_full, lobe.name).items()}
+    weights = np.where(np.asarray(geo.hit)[rows, k][:, None], problem.weights[0][rows], 0.0)
+    p = lobe_params(problem.init_full, lobe.name)
     run = _searcher(lobe, tuple(sorted(material.options_of(lobe.name).items())),
-                    problem.renderer.env_type, tuple(sorted(blocks)),
-                    tuple(sorted((k_, (b.lower, b.upper)) for k_, b in blocks.items())))
+                    problem.renderer.env_type, tuple(sorted(free)), tuple(sorted(free.items())))
     sphere = problem.renderer.sphere
-    best = run(p0, pick(geo.position), pick(geo.normal), pick(geo.ray_dir), sphere[0],
-               sphere[1], problem.renderer.env, jnp.asarray(problem.targets[0][rows]),
-               jnp.asarray(weights))
+    args = (pick(geo.position), pick(geo.normal), pick(geo.ray_dir), sphere[0], sphere[1],
+            problem.renderer.env, jnp.asarray(problem.targets[0][rows]), jnp.asarray(weights))
+    search = lobe.start_search
+    best = float(p[search.param])
+    for grid in search.rounds(p, tuple(free), free):
+        found = run({**{k_: jnp.asarray(v) for k_, v in p.items()},
+                     search.param: jnp.asarray(grid(best))}, *args)
+        best = float(found[search.param])
     init = dict(problem.init_full)
-    for name in blocks:
-        init[f"{lobe.name}.{name}"] = np.asarray(best[name], dtype=np.float64)
+    for name in free:
+        init[f"{lobe.name}.{name}"] = np.asarray(found[name], dtype=np.float64)
     return dataclasses.replace(problem, init_full=init)
+
+
+def cheapened(problem):
+    """``problem`` with each lobe's work options (``Lobe.cheapest_options``) as
+    low as keeps what they leave out of every fitted pixel below
+    ``TRUNCATION_NOISE_FRACTION`` of the noise, at the start point."""
+    material = problem.material
+    lobes = [lb for lb in material.lobe_objects if lb.cheapest_options is not None]
+    sigma = (np.full(3, problem.noise_sigma) if problem.noise_sigma is not None
+             else np.asarray(problem.noise[0], dtype=np.float64))
+    if not lobes or not np.all(np.isfinite(sigma) & (sigma > 0)):
+        return problem
+    geo, renderer = problem.geometry, problem.renderer
+    hit = SurfaceHit(np.asarray(geo.position), np.asarray(geo.normal), np.asarray(geo.ray_dir),
+                     np.asarray(renderer.sphere[0]), float(renderer.sphere[1]))
+    weight = np.asarray(geo.sample_weight)[None] * np.asarray(geo.hit)
+    env = renderer.env
+    env_max = (np.max(np.asarray(env.image), axis=(0, 1)) if renderer.env_type == "envmap"
+               else np.asarray(env.constant))
+    options = dict(material.options)
+    for lobe in lobes:
+        found = lobe.cheapest_options(lobe_params(problem.init_full, lobe.name),
+                                      material.options_of(lobe.name), hit, weight, env_max,
+                                      TRUNCATION_NOISE_FRACTION * sigma)
+        options.update({f"{lobe.name}.{k}": v for k, v in found.items()})
+    if options == dict(material.options):
+        return problem
+    return dataclasses.replace(problem, material=Material.make(material.lobes, options))
