@@ -151,29 +151,44 @@ def _models(eta, atts, opts, hit, env):
     return jax.vmap(one)(atts)
 
 
+#: Logit of the attenuation grid's ends (0.005 and 0.998).
+_ATT_LOGITS = (-5.3, 6.2)
+
+
 def _att_grid(p, free, box):
     """(A, 3) attenuations the search tries: the start and, if free, a grid."""
     att0 = jnp.broadcast_to(jnp.asarray(p["attenuation"]), (3,))
     if "attenuation" not in free:
         return att0[None]
     lo, hi = box["attenuation"]
-    grid = jnp.clip(jax.nn.sigmoid(jnp.linspace(-5.3, 6.2, ATT_POINTS)), lo, hi)  # 0.005..0.998
+    grid = jnp.clip(jax.nn.sigmoid(jnp.linspace(*_ATT_LOGITS, ATT_POINTS)), lo, hi)
     return jnp.concatenate([jnp.broadcast_to(grid[:, None], (ATT_POINTS, 3)), att0[None]])
 
 
 def _search(p, opts, hit, env, cost, free, box):
     """The lowest ``cost`` over eta values (``p["eta"]`` (G,)) and attenuations.
 
-    ``cost(model (..., P, 3)) -> (..., 3)`` per channel; the channels of the
-    attenuation are independent given eta, so each takes its best grid value.
-    ``free``: names of the free parameters; ``box``: their (lower, upper).
-    Returns the best {eta, attenuation} and its cost.
+    ``cost(model (..., 3)) -> (3,)`` per channel; the channels of the
+    attenuation are independent given eta, so each takes its best grid value,
+    then the best of ``ATT_POINTS`` more within one grid cell of it (at the
+    best eta). ``free``: names of the free parameters; ``box``: their
+    (lower, upper). Returns the best {eta, attenuation}.
     """
     atts = _att_grid(p, free, box)
-    costs = jax.lax.map(lambda e: cost(_models(e, atts, opts, hit, env)), p["eta"])  # (G, A, 3)
+    costs = jax.lax.map(lambda e: jax.vmap(cost)(_models(e, atts, opts, hit, env)),
+                        p["eta"])  # (G, A, 3)
     per_eta = jnp.sum(jnp.min(costs, axis=1), axis=-1)  # each channel's best attenuation
     i = jnp.argmin(per_eta)
-    return {"eta": p["eta"][i], "attenuation": atts[jnp.argmin(costs[i], axis=0), jnp.arange(3)]}
+    att = atts[jnp.argmin(costs[i], axis=0), jnp.arange(3)]
+    if "attenuation" in free:
+        lo, hi = box["attenuation"]
+        cell = (_ATT_LOGITS[1] - _ATT_LOGITS[0]) / (ATT_POINTS - 1)
+        z = jnp.log(att) - jnp.log1p(-att)
+        fine = jax.nn.sigmoid(z[None] + jnp.linspace(-cell, cell, ATT_POINTS)[:, None])
+        fine = jnp.concatenate([jnp.clip(fine, lo, hi), att[None]])  # (A + 1, 3)
+        c = jax.vmap(cost)(_models(p["eta"][i], fine, opts, hit, env))
+        att = fine[jnp.argmin(c, axis=0), jnp.arange(3)]
+    return {"eta": p["eta"][i], "attenuation": att}
 
 
 def _search_grids(p, free, box):
