@@ -209,15 +209,13 @@ class Hints:
 class StartSearch(NamedTuple):
     """A lobe's coarse search for the solver's start (``fitter.fit._search``).
 
-    ``param``: the parameter scanned over a grid. ``rounds(p, free, box)``:
-    one function per round, (best value so far) -> (G,) grid of ``param``
-    (the start's value is the first round's "best"). ``best(p, opts, hit,
-    env, cost, free, box) -> p``: the lowest ``cost(model (..., P, 3)) ->
-    (..., 3)`` over the grid ``p[param]`` (and whatever else the lobe tries);
-    ``free`` names the free parameters, ``box`` maps them to (lower, upper).
+    ``rounds(p, free, box)``: one function per round, (best point so far) ->
+    a grid, ``p`` with arrays of candidates (the start is the first round's
+    best; ``free`` names the free parameters, ``box`` maps them to (lower,
+    upper)). ``best(grid, opts, hit, env, cost) -> p``: the point of the grid
+    with the lowest ``cost(model (..., 3)) -> (3,)`` (per channel).
     """
 
-    param: str
     rounds: Callable
     best: Callable
 

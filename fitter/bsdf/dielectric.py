@@ -116,12 +116,9 @@ def _radiance_grad(p, opts, hit, env):
     return out, {"eta": d_eta, "attenuation": d_att}
 
 
-#: The start search's grids: eta - 1 log-spaced over the box (``ETA_POINTS``,
-#: from ``ETA_MIN_EXCESS``), then ``ETA_POINTS`` again over one coarse cell
-#: around the best; the attenuation per channel over ``ATT_POINTS`` values,
-#: logit-spaced in [0.005, 0.998]. Measured (128^2 envmap): eta = 1.001 has a
-#: basin ~0.005 wide, i.e. a factor ~5 in eta - 1, and 40 points over 4.5
-#: decades of eta - 1 are a factor 1.3 apart.
+#: The start search's grid sizes (``_search_rounds``). Measured (128^2 envmap):
+#: eta = 1.001 has a basin ~0.005 wide, i.e. a factor ~5 in eta - 1, and 40
+#: points over 4.5 decades of eta - 1 are a factor 1.3 apart.
 ETA_POINTS = 40
 ETA_MIN_EXCESS = 1e-4
 ATT_POINTS = 24
@@ -131,7 +128,7 @@ def _models(eta, atts, opts, hit, env):
     """Radiance (A, ..., 3) at one eta for each row of ``atts`` (A, 3): the
     environment is looked up once for all of them (the exits do not depend
     on the attenuation)."""
-    f0, first, f1, v, cos_phi, axis, chord = _crossing(eta, jnp.ones(3), hit)
+    f0, first, f1, v, cos_phi, axis, chord = _crossing(eta, jnp.ones(3, hit.position.dtype), hit)
 
     def crossing(v, _):
         return v * cos_phi + jnp.cross(axis, v), env(v)
@@ -155,61 +152,60 @@ def _models(eta, atts, opts, hit, env):
 _ATT_LOGITS = (-5.3, 6.2)
 
 
-def _att_grid(p, free, box):
-    """(A, 3) attenuations the search tries: the start and, if free, a grid."""
-    att0 = jnp.broadcast_to(jnp.asarray(p["attenuation"]), (3,))
-    if "attenuation" not in free:
-        return att0[None]
-    lo, hi = box["attenuation"]
-    grid = jnp.clip(jax.nn.sigmoid(jnp.linspace(*_ATT_LOGITS, ATT_POINTS)), lo, hi)
-    return jnp.concatenate([jnp.broadcast_to(grid[:, None], (ATT_POINTS, 3)), att0[None]])
-
-
-def _search(p, opts, hit, env, cost, free, box):
-    """The lowest ``cost`` over eta values (``p["eta"]`` (G,)) and attenuations.
+def _search(p, opts, hit, env, cost):
+    """The lowest ``cost`` over a grid: ``p["eta"]`` (G,) x ``p["attenuation"]``
+    (A, 3), a column of candidates per channel.
 
     ``cost(model (..., 3)) -> (3,)`` per channel; the channels of the
-    attenuation are independent given eta, so each takes its best grid value,
-    then the best of ``ATT_POINTS`` more within one grid cell of it (at the
-    best eta). ``free``: names of the free parameters; ``box``: their
-    (lower, upper). Returns the best {eta, attenuation}.
+    attenuation are independent given eta, so each takes its best candidate.
+    Returns the best {eta, attenuation}.
     """
-    atts = _att_grid(p, free, box)
+    atts = p["attenuation"]
     costs = jax.lax.map(lambda e: jax.vmap(cost)(_models(e, atts, opts, hit, env)),
                         p["eta"])  # (G, A, 3)
     per_eta = jnp.sum(jnp.min(costs, axis=1), axis=-1)  # each channel's best attenuation
     i = jnp.argmin(per_eta)
-    att = atts[jnp.argmin(costs[i], axis=0), jnp.arange(3)]
-    if "attenuation" in free:
-        lo, hi = box["attenuation"]
-        cell = (_ATT_LOGITS[1] - _ATT_LOGITS[0]) / (ATT_POINTS - 1)
-        z = jnp.log(att) - jnp.log1p(-att)
-        fine = jax.nn.sigmoid(z[None] + jnp.linspace(-cell, cell, ATT_POINTS)[:, None])
-        fine = jnp.concatenate([jnp.clip(fine, lo, hi), att[None]])  # (A + 1, 3)
-        c = jax.vmap(cost)(_models(p["eta"][i], fine, opts, hit, env))
-        att = fine[jnp.argmin(c, axis=0), jnp.arange(3)]
-    return {"eta": p["eta"][i], "attenuation": att}
+    return {"eta": p["eta"][i], "attenuation": atts[jnp.argmin(costs[i], axis=0), jnp.arange(3)]}
 
 
-def _search_grids(p, free, box):
-    """The eta values of the search's rounds: ``grids(best) -> (G,)`` per round
-    (the start's eta is in every round)."""
-    eta0 = float(p["eta"])
-    if "eta" not in free:
-        return (lambda best: np.array([eta0]),)
-    lo, hi = box["eta"]
-    x_lo, x_hi = np.log(max(lo - 1.0, ETA_MIN_EXCESS)), np.log(hi - 1.0)
-    cell = (x_hi - x_lo) / (ETA_POINTS - 1)
+def _grid(lo, hi, n, fixed):
+    """(coarse, fine): functions (best, in the grid's coordinate) -> n
+    coordinates: ``n - 1`` over [lo, hi], or over one coarse cell around
+    ``best``, then ``best`` itself; n copies of ``best`` if ``fixed``."""
+    cell = (hi - lo) / (n - 2)
+    if fixed:
+        return (lambda b: np.full(n, b),) * 2
+    return (lambda b: np.append(np.linspace(lo, hi, n - 1), b),
+            lambda b: np.append(np.clip(b + np.linspace(-cell, cell, n - 1), lo, hi), b))
 
-    def coarse(best):
-        return np.append(1.0 + np.exp(np.linspace(x_lo, x_hi, ETA_POINTS)), eta0)
 
-    def fine(best):
-        x = np.log(max(best - 1.0, ETA_MIN_EXCESS))
-        xs = np.clip(np.linspace(x - cell, x + cell, ETA_POINTS), x_lo, x_hi)
-        return np.append(1.0 + np.exp(xs), best)
+def _search_rounds(p, free, box):
+    """Two rounds, each (best so far) -> grid: eta - 1 log-spaced over the box
+    (from ``ETA_MIN_EXCESS``) and the attenuation logit-spaced over [0.005,
+    0.998]; then each over one cell of the first grid around the best. The
+    best so far is a candidate of every round."""
+    e_lo, e_hi = box.get("eta", (1.0, 4.0))
+    x_lo, x_hi = np.log(max(e_lo - 1.0, ETA_MIN_EXCESS)), np.log(e_hi - 1.0)
+    etas = _grid(x_lo, x_hi, ETA_POINTS + 1, "eta" not in free)
+    a_lo, a_hi = box.get("attenuation", (0.0, 1.0))
+    logit = lambda c: np.log(c) - np.log1p(-c)  # noqa: E731
+    clip = lambda c: np.clip(c, max(a_lo, 1e-12), min(a_hi, 1.0 - 1e-12))  # noqa: E731
+    u_lo, u_hi = max(_ATT_LOGITS[0], logit(clip(a_lo))), min(_ATT_LOGITS[1], logit(clip(a_hi)))
+    atts = _grid(u_lo, u_hi, ATT_POINTS + 1, "attenuation" not in free)
 
-    return coarse, fine
+    def round_(i):
+        def grid(best):
+            x = np.log(max(float(best["eta"]) - 1.0, ETA_MIN_EXCESS))
+            eta = 1.0 + np.exp(etas[i](x))
+            eta[-1] = float(best["eta"])  # exactly, also below ETA_MIN_EXCESS
+            c = np.broadcast_to(np.asarray(best["attenuation"], dtype=np.float64), (3,))
+            u = np.stack([atts[i](logit(clip(cj))) for cj in c], axis=-1)  # (A, 3)
+            att = 1.0 / (1.0 + np.exp(-u))
+            att[-1] = c  # exactly, also on the box edge
+            return {"eta": eta, "attenuation": att}
+        return grid
+
+    return round_(0), round_(1)
 
 
 #: The bounce count is chosen at the start point with this much margin: the
@@ -276,7 +272,7 @@ LOBE = Lobe(
     options=(Option("bounces", None, 8, "internal reflections followed", most=64),),
     radiance=_radiance,
     radiance_grad=_radiance_grad,
-    start_search=StartSearch("eta", _search_grids, _search),
+    start_search=StartSearch(_search_rounds, _search),
     cheapest_options=_cheapest,
     doc="Fresnel reflection + Snell refraction through the sphere, total internal reflection, "
         "η² radiance scaling (cancels on a full pass), Beer-Lambert c^d with d in world units",

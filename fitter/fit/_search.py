@@ -33,8 +33,8 @@ TRUNCATION_NOISE_FRACTION = 0.1
 
 
 @functools.lru_cache(maxsize=8)
-def _searcher(lobe, opts_items, env_type, free, box_items):
-    opts, box = dict(opts_items), dict(box_items)
+def _searcher(lobe, opts_items, env_type):
+    opts = dict(opts_items)
 
     def run(p, position, normal, ray_dir, center, radius, sample_weight, env, target, weights):
         hit = SurfaceHit(position, normal, ray_dir, center, radius)
@@ -44,7 +44,7 @@ def _searcher(lobe, opts_items, env_type, free, box_items):
             return jnp.sum(jnp.square((pixels - target) * weights), axis=0)
 
         return lobe.start_search.best(p, opts, hit, functools.partial(lookup, env_type, env),
-                                      cost, free, box)
+                                      cost)
 
     return jax.jit(run)
 
@@ -63,25 +63,25 @@ def searched(problem):
     n = np.asarray(geo.hit).shape[0]
     rows = np.arange(0, n, max(1, n // SEARCH_PIXELS))
     k = int(np.argmax(np.asarray(geo.sample_weight)))
-    pick = lambda a: jnp.asarray(np.asarray(a)[rows, k:k + 1])  # noqa: E731
+    # In float64 whatever the fit's dtype: the search only ranks candidates.
+    f64 = lambda a: jnp.asarray(np.asarray(a, dtype=np.float64))  # noqa: E731
+    pick = lambda a: f64(np.asarray(a)[rows, k:k + 1])  # noqa: E731
     sample_weight = np.asarray(geo.hit)[rows, k:k + 1].astype(np.float64)
     p = lobe_params(problem.init_full, lobe.name)
     run = _searcher(lobe, tuple(sorted(material.options_of(lobe.name).items())),
-                    problem.renderer.env_type, tuple(sorted(free)), tuple(sorted(free.items())))
+                    problem.renderer.env_type)
     sphere = problem.renderer.sphere
-    args = (pick(geo.position), pick(geo.normal), pick(geo.ray_dir), sphere[0], sphere[1],
-            jnp.asarray(sample_weight), problem.renderer.env,
-            jnp.asarray(problem.targets[0][rows] - np.asarray(geo.background)[rows]),
-            jnp.asarray(problem.weights[0][rows]))
-    search = lobe.start_search
-    best = float(p[search.param])
-    for grid in search.rounds(p, tuple(free), free):
-        found = run({**{k_: jnp.asarray(v) for k_, v in p.items()},
-                     search.param: jnp.asarray(grid(best))}, *args)
-        best = float(found[search.param])
+    args = (pick(geo.position), pick(geo.normal), pick(geo.ray_dir), f64(sphere[0]),
+            f64(sphere[1]), f64(sample_weight), jax.tree_util.tree_map(f64, problem.renderer.env),
+            f64(problem.targets[0][rows] - np.asarray(geo.background)[rows]),
+            f64(problem.weights[0][rows]))
+    best = p
+    for grid in lobe.start_search.rounds(p, tuple(free), free):
+        best = {k_: np.asarray(v, dtype=np.float64) for k_, v in
+                run({k_: f64(v) for k_, v in grid(best).items()}, *args).items()}
     init = dict(problem.init_full)
     for name in free:
-        init[f"{lobe.name}.{name}"] = np.asarray(found[name], dtype=np.float64)
+        init[f"{lobe.name}.{name}"] = best[name]
     return dataclasses.replace(problem, init_full=init)
 
 
