@@ -56,7 +56,10 @@ def _crossing(eta, att, hit):
     t, _ = refract(d, n, eta)
     chord = jnp.maximum(-2.0 * dot(hit.position - hit.center, t), 0.0)
     n1 = normalize(hit.position + chord[..., None] * t - hit.center)
-    f1 = fresnel_dielectric(jnp.clip(dot(t, n1), 0.0, 1.0), 1.0 / eta)
+    # Inside, the ray meets the surface at the refraction angle, where the
+    # reflectance from inside equals F_0 (Fresnel is symmetric under reversal:
+    # F(cos_t, 1/eta) = F(cos_i, eta); no total internal reflection on a sphere).
+    f1 = f0
     t_out, _ = refract(t, -n1, 1.0 / eta)
     transmit = safe_pow(att, chord[..., None])  # Beer-Lambert over one chord
     scale = radiance_scale(eta) * radiance_scale(1.0 / eta)  # in and out: cancels
