@@ -33,7 +33,7 @@ import numpy as np
 from .._lazy import jax, jnp
 from .._math import dot, normalize, reflect, safe_pow
 from .base import Lobe, Option, Param, StartSearch
-from .fresnel import fresnel_dielectric, radiance_scale, refract
+from .fresnel import fresnel_dielectric, fresnel_dielectric_deta, refract
 from .mitsuba_map import MitsubaMapping, absorbing_medium
 
 #: Path vertices beyond the internal reflections traced here (camera hit,
@@ -41,32 +41,38 @@ from .mitsuba_map import MitsubaMapping, absorbing_medium
 MITSUBA_EXTRA_DEPTH = 3
 
 
+def _directions(eta, hit):
+    """The first exit direction, the rotation (cos phi (..., 1), axis) taking
+    each exit to the next, and the chord s (...) of the refracted ray.
+
+    By the sphere's symmetry every crossing repeats the first: the same chord
+    s, the same internal angle (so the same Fresnel F_1 and attenuation c^s),
+    and each exit direction is the previous one rotated about n x n_1 by the
+    angle between the two hit normals (|axis| = sin phi)."""
+    d, n = hit.ray_dir, hit.normal
+    t, _ = refract(d, n, eta)
+    chord = jnp.maximum(-2.0 * dot(hit.position - hit.center, t), 0.0)
+    n1 = normalize(hit.position + chord[..., None] * t - hit.center)
+    t_out, _ = refract(t, -n1, 1.0 / eta)
+    return t_out, dot(n, n1)[..., None], jnp.cross(n, n1), chord
+
+
 def _crossing(eta, att, hit):
     """What the first crossing fixes for every later one, each (...[, 3]): the
     front reflectance F_0, the first exit's weight, the per-bounce factor
     F_1 c^s, the first exit direction, the rotation (cos phi, axis) taking
     each exit to the next, and the chord s."""
-    d, n = hit.ray_dir, hit.normal
-    cos_i = jnp.clip(-dot(d, n), 0.0, 1.0)
+    cos_i = jnp.clip(-dot(hit.ray_dir, hit.normal), 0.0, 1.0)
     f0 = fresnel_dielectric(cos_i, eta)
-    # By the sphere's symmetry every crossing repeats the first: the same chord
-    # s, the same internal angle (so the same Fresnel F_1 and attenuation
-    # c^s), and each exit direction is the previous one rotated about n x n_1
-    # by the angle between the two hit normals.
-    t, _ = refract(d, n, eta)
-    chord = jnp.maximum(-2.0 * dot(hit.position - hit.center, t), 0.0)
-    n1 = normalize(hit.position + chord[..., None] * t - hit.center)
+    t_out, cos_phi, axis, chord = _directions(eta, hit)
     # Inside, the ray meets the surface at the refraction angle, where the
     # reflectance from inside equals F_0 (Fresnel is symmetric under reversal:
-    # F(cos_t, 1/eta) = F(cos_i, eta); no total internal reflection on a sphere).
-    f1 = f0
-    t_out, _ = refract(t, -n1, 1.0 / eta)
+    # F(cos_t, 1/eta) = F(cos_i, eta); no total internal reflection on a
+    # sphere). The radiance gains eta^2 going in and 1/eta^2 going out
+    # (``radiance_scale``): a factor 1 on every exit.
     transmit = safe_pow(att, chord[..., None])  # Beer-Lambert over one chord
-    scale = radiance_scale(eta) * radiance_scale(1.0 / eta)  # in and out: cancels
-    first = ((1.0 - f0) * (1.0 - f1) * scale)[..., None] * transmit
-    step = f1[..., None] * transmit
-    # |axis| = sin(phi); the exits lie in the plane normal to it.
-    return f0, first, step, t_out, dot(n, n1)[..., None], jnp.cross(n, n1), chord
+    first = ((1.0 - f0) ** 2)[..., None] * transmit
+    return f0, first, f0[..., None] * transmit, t_out, cos_phi, axis, chord
 
 
 def _radiance(p, opts, hit, env):
@@ -86,23 +92,33 @@ def _radiance(p, opts, hit, env):
 def _radiance_grad(p, opts, hit, env):
     """Radiance and its derivatives {eta: (..., 3), attenuation: diagonal (..., 3)}.
 
-    The first crossing's quantities and their eta derivatives come from one
-    forward-mode tangent; the series then carries d/d eta (through each
-    exit direction's environment lookup) and d/dc (c^s by hand: d c^s / dc
-    = s c^s / c) beside the value. Autodiff of the whole lobe pushed four
-    tangents (eta and three channels) through every lookup.
-    ``tests/test_stability.py`` checks this against ``jax.jacfwd``.
+    The directions and chord of the first crossing and their eta derivatives
+    come from one forward-mode tangent, the Fresnel factor's from
+    ``fresnel_dielectric_deta``; the series then carries d/d eta (through
+    each exit direction's environment lookup) and d/dc beside the value.
+    Autodiff of the whole lobe pushed four tangents (eta and three channels)
+    through every lookup. ``tests/test_dielectric_fit.py`` checks this
+    against ``jax.jacfwd``.
     """
     eta, att = jnp.asarray(p["eta"]), p["attenuation"]
-    prim, tang = jax.jvp(lambda e: _crossing(e, att, hit), (eta,), (jnp.ones_like(eta),))
-    f0, weight, step, v, cos_phi, axis, chord = prim
-    df0, dweight, dstep, dv, dcos_phi, daxis, _ = tang
-    e_r = env(reflect(hit.ray_dir, hit.normal))
-    # weight and step are each linear in c^s, and d c^s / dc = s c^s / c; at the
-    # box edge c = 0 the stand-in derivative is 0 (c^s is flat there for s > 1).
+    cos_i = jnp.clip(-dot(hit.ray_dir, hit.normal), 0.0, 1.0)
+    f0, df0 = fresnel_dielectric_deta(cos_i, eta)
+    (v, cos_phi, axis, chord), (dv, dcos_phi, daxis, dchord) = jax.jvp(
+        lambda e: _directions(e, hit), (eta,), (jnp.ones_like(eta),))
+    # c^s and its derivatives: s c^s / c in c (weight and step are each linear
+    # in c^s) and c^s ln(c) ds in eta; at the box edge c = 0 both are 0.
+    transmit = safe_pow(att, chord[..., None])
     pos = att > 0
-    s_over_c = jnp.where(pos, chord[..., None] / jnp.where(pos, att, 1.0), 0.0)
+    safe_att = jnp.where(pos, att, 1.0)
+    s_over_c = jnp.where(pos, chord[..., None] / safe_att, 0.0)
+    dtransmit = transmit * jnp.log(safe_att) * dchord[..., None]
+    g0, dg0 = (1.0 - f0)[..., None], -df0[..., None]
+    weight, step = g0 * g0 * transmit, f0[..., None] * transmit
+    dweight = 2.0 * g0 * dg0 * transmit + g0 * g0 * dtransmit
+    dstep = df0[..., None] * transmit + f0[..., None] * dtransmit
     aweight, astep = weight * s_over_c, step * s_over_c
+    e_r = env(reflect(hit.ray_dir, hit.normal))
+    f0, df0 = f0[..., None], df0[..., None]
 
     def crossing(carry, _):
         out, d_eta, d_att, w, dw, aw, v, dv = carry
@@ -113,8 +129,7 @@ def _radiance_grad(p, opts, hit, env):
                  dv * cos_phi + v * dcos_phi + jnp.cross(daxis, v) + jnp.cross(axis, dv))
         return carry, None
 
-    init = (f0[..., None] * e_r, df0[..., None] * e_r, jnp.zeros_like(e_r),
-            weight, dweight, aweight, v, dv)
+    init = (f0 * e_r, df0 * e_r, jnp.zeros_like(e_r), weight, dweight, aweight, v, dv)
     (out, d_eta, d_att, *_), _ = jax.lax.scan(crossing, init, None, length=opts["bounces"] + 1)
     return out, {"eta": d_eta, "attenuation": d_att}
 
