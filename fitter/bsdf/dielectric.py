@@ -233,13 +233,9 @@ def _search_rounds(p, free, box):
 BOUNCE_ETA_MARGIN = 1.2
 
 
-def untraced_bound(eta, att, cos_i, chord, bounces):
-    """Upper bound (..., 3) on the weight of the internal paths after exit
-    ``bounces``, per unit environment radiance: the geometric series
-    sum_{k > K} (1 - F)^2 F^k T^(k+1) = (1 - F)^2 T (F T)^(K+1) / (1 - F T)
-    with T = c^s; on a sphere the internal reflectance F_1 equals the outer
-    F_0 = F(cos_i, eta) (reciprocity: the internal angle is the refraction
-    angle). NumPy, float64."""
+def _series_factors(eta, att, cos_i, chord):
+    """(F (..., 1), T (..., 3)) of the path series: Fresnel reflectance and
+    one chord's transmittance c^s (NumPy, float64)."""
     c = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)
     ct = np.sqrt(np.maximum(1.0 - (1.0 - c * c) / (eta * eta), 0.0))
     den_s, den_p = c + eta * ct, eta * c + ct
@@ -247,7 +243,17 @@ def untraced_bound(eta, att, cos_i, chord, bounces):
     r_s = np.where(ok, (c - eta * ct) / np.where(ok, den_s, 1.0), -1.0)
     r_p = np.where(ok, (eta * c - ct) / np.where(ok, den_p, 1.0), -1.0)
     f = (0.5 * (r_s * r_s + r_p * r_p))[..., None]
-    transmit = np.power(np.asarray(att, dtype=np.float64), np.asarray(chord)[..., None])
+    return f, np.power(np.asarray(att, dtype=np.float64), np.asarray(chord)[..., None])
+
+
+def untraced_bound(eta, att, cos_i, chord, bounces):
+    """Upper bound (..., 3) on the weight of the internal paths after exit
+    ``bounces``, per unit environment radiance: the geometric series
+    sum_{k > K} (1 - F)^2 F^k T^(k+1) = (1 - F)^2 T (F T)^(K+1) / (1 - F T)
+    with T = c^s; on a sphere the internal reflectance F_1 equals the outer
+    F_0 = F(cos_i, eta) (reciprocity: the internal angle is the refraction
+    angle). NumPy, float64."""
+    f, transmit = _series_factors(eta, att, cos_i, chord)
     ft = f * transmit
     den = 1.0 - ft  # 0 only where F = 1 (grazing), where (1 - F)^2 = 0 too
     return np.where(den > 0, (1.0 - f) ** 2 * transmit * ft ** (bounces + 1)
@@ -265,10 +271,13 @@ def _cheapest(p, opts, hit, weight, env_max, tolerance):
     cos_i = np.clip(-np.sum(d * n, axis=-1), 0.0, 1.0)
     cos_t = np.sqrt(np.maximum(1.0 - (1.0 - cos_i ** 2) / eta ** 2, 0.0))
     chord = 2.0 * float(hit.radius) * cos_t
+    tail = untraced_bound(eta, att, cos_i, chord, 0) * np.asarray(weight)[..., None]
+    f, transmit = _series_factors(eta, att, cos_i, chord)
+    ft = f * transmit
     for k in range(opts["bounces"]):
-        tail = np.einsum("pkc,pk->pc", untraced_bound(eta, att, cos_i, chord, k), weight)
-        if np.all(tail * env_max <= tolerance):
+        if np.all(np.sum(tail, axis=1) * env_max <= tolerance):
             return {"bounces": k}
+        tail *= ft  # the bound after one more exit
     return {"bounces": opts["bounces"]}
 
 
