@@ -15,7 +15,13 @@ s_j = s and F_j = F_1: the series is evaluated from the first crossing, and
 the exit directions t_k by a fixed rotation (agrees with explicit tracing to
 ~1e-13 and is 3-7x cheaper to differentiate).
 ``bounces`` internal reflections are followed; the default 8 leaves < 1e-3
-of the image mean untraced for eta <= 2 (checked in tests).
+of the image mean untraced for eta <= 2 (checked in tests). A fit follows
+fewer where the closed-form bound on the rest (``untraced_bound``: a
+geometric series in F c^s, times the brightest environment radiance) stays
+below a tenth of the noise in every fitted pixel (``_cheapest``). A fit
+starts from a coarse search (``_search_rounds``): eta - 1 on a log grid and
+each attenuation channel on a logit grid, so that eta near 1 is found from
+the default start.
 
 Mitsuba: the smooth ``dielectric`` (air outside: ext_ior = 1); the
 Beer-Lambert attenuation is a medium, not a BSDF: the sphere's interior
@@ -188,20 +194,22 @@ def _search(p, opts, hit, env, cost):
 
 def _grid(lo, hi, n, fixed):
     """(coarse, fine): functions (best, in the grid's coordinate) -> n
-    coordinates: ``n - 1`` over [lo, hi], or over one coarse cell around
-    ``best``, then ``best`` itself; n copies of ``best`` if ``fixed``."""
+    coordinates: ``best`` first (so a tie keeps it), then ``n - 1`` over
+    [lo, hi], or over one coarse cell around ``best``; n copies of ``best``
+    if ``fixed``."""
     cell = (hi - lo) / (n - 2)
     if fixed:
         return (lambda b: np.full(n, b),) * 2
-    return (lambda b: np.append(np.linspace(lo, hi, n - 1), b),
-            lambda b: np.append(np.clip(b + np.linspace(-cell, cell, n - 1), lo, hi), b))
+    return (lambda b: np.insert(np.linspace(lo, hi, n - 1), 0, b),
+            lambda b: np.insert(np.clip(b + np.linspace(-cell, cell, n - 1), lo, hi), 0, b))
 
 
 def _search_rounds(p, free, box):
     """Two rounds, each (best so far) -> grid: eta - 1 log-spaced over the box
     (from ``ETA_MIN_EXCESS``) and the attenuation logit-spaced over [0.005,
     0.998]; then each over one cell of the first grid around the best. The
-    best so far is a candidate of every round."""
+    best so far is the first candidate of every round (kept on a tie: a
+    black environment leaves the start where it was)."""
     e_lo, e_hi = box.get("eta", (1.0, 4.0))
     x_lo, x_hi = np.log(max(e_lo - 1.0, ETA_MIN_EXCESS)), np.log(e_hi - 1.0)
     etas = _grid(x_lo, x_hi, ETA_POINTS + 1, "eta" not in free)
@@ -215,11 +223,11 @@ def _search_rounds(p, free, box):
         def grid(best):
             x = np.log(max(float(best["eta"]) - 1.0, ETA_MIN_EXCESS))
             eta = 1.0 + np.exp(etas[i](x))
-            eta[-1] = float(best["eta"])  # exactly, also below ETA_MIN_EXCESS
+            eta[0] = float(best["eta"])  # exactly, also below ETA_MIN_EXCESS
             c = np.broadcast_to(np.asarray(best["attenuation"], dtype=np.float64), (3,))
             u = np.stack([atts[i](logit(clip(cj))) for cj in c], axis=-1)  # (A, 3)
             att = 1.0 / (1.0 + np.exp(-u))
-            att[-1] = c  # exactly, also on the box edge
+            att[0] = c  # exactly, also on the box edge
             return {"eta": eta, "attenuation": att}
         return grid
 
@@ -296,7 +304,8 @@ LOBE = Lobe(
     ),
     # Each bounce is one more pass over the samples; 64 (8x the default) bounds
     # the work a config may ask for (1e8 bounces once ran for 10 minutes).
-    options=(Option("bounces", None, 8, "internal reflections followed", most=64),),
+    options=(Option("bounces", None, 8, "internal reflections followed at most (a fit follows "
+                          "fewer where the rest is below a tenth of the noise)", most=64),),
     radiance=_radiance,
     radiance_grad=_radiance_grad,
     start_search=StartSearch(_search_rounds, _search),
