@@ -7,8 +7,9 @@ The search sees every ``stride``-th fitted pixel (about ``SEARCH_PIXELS``)
 through one sub-pixel sample each, the one of largest quadrature weight
 (measured: from the search's point the shipped case took 6 solver steps, 10
 with all 16 samples of 1/16 as many pixels), and the plain weighted squared
-residual: a cheap, rough cost whose minimum lies near the fit's. The start's own value is among the candidates, so the solver
-never starts from a point the search found worse.
+residual: a cheap, rough cost whose minimum lies near the fit's. The start
+itself is the first candidate, so the solver never starts from a point the
+search found worse (and a tie keeps the start).
 """
 
 from __future__ import annotations
