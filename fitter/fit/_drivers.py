@@ -1,6 +1,7 @@
 """The public drivers, target image(s) -> FitResult.
 
-Flow: set up the problem -> hold parameters without effect at the start ->
+Flow: set up the problem -> search the start and cut work options where a lobe
+has them (``_search``) -> hold parameters without effect at the start ->
 solve from one or more starts (one compiled call) -> keep the lowest cost ->
 check identifiability at the solution, hold and refit -> verdict.
 """
@@ -21,9 +22,9 @@ from ..scene import Scene
 from . import _args
 from ._compile import compiled, jac_res, r_factor
 from ._covariance import residual_variance
-from ._search import cheapened, searched
 from ._identify import WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction
 from ._problem import blocks_of, format_value, user_values, z_from_params
+from ._search import cheapened, searched
 from ._setup import START_MARGIN, FitError, Problem
 from ._starts import starts as make_starts
 from ._verdict import all_held, report, start_status
