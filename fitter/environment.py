@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -42,24 +43,28 @@ def load_environment(env: Environment, base_dir: str | None = None) -> EnvData:
     return EnvData(to_device(np.zeros((1, 1, 3))), to_device(rad))
 
 
-def direction_to_uv(v):
-    """Mitsuba envmap coordinates (u, v) in [0, 1) x [0, 1] of unit directions (..., 3)."""
+def _uv_and_polar(v):
+    """(u, v', off_pole, rho) of unit directions (..., 3): Mitsuba's envmap
+    coordinates, where u is defined (not at a pole) and rho = |v_xz|."""
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     r2 = x * x + z * z
     off_pole = r2 > 0  # at the poles u is arbitrary; atan2(0, 0) has a NaN gradient
     u = jnp.arctan2(jnp.where(off_pole, x, 0.0), jnp.where(off_pole, -z, 1.0)) / (2.0 * jnp.pi)
     u = u - jnp.floor(u)
-    theta = jnp.arctan2(safe_sqrt(r2), y)
-    return u, theta / jnp.pi
+    rho = safe_sqrt(r2)
+    return u, jnp.arctan2(rho, y) / jnp.pi, off_pole, rho
 
 
-def lookup(env_type: str, data: EnvData, dirs):
-    """Radiance (..., 3) arriving from directions ``dirs`` (..., 3)."""
-    if env_type != "envmap":
-        return jnp.broadcast_to(data.constant, dirs.shape)
-    img = data.image
+def direction_to_uv(v):
+    """Mitsuba envmap coordinates (u, v) in [0, 1) x [0, 1] of unit directions (..., 3)."""
+    u, vv, _, _ = _uv_and_polar(v)
+    return u, vv
+
+
+def _bilinear(img, u, v):
+    """Bilinear lookup of ``img`` (H, W, 3) at (u, v) and the local slopes
+    (d value / du, d value / dv), each (..., 3)."""
     h, w = img.shape[0], img.shape[1]
-    u, v = direction_to_uv(dirs)
     fx = u * w - 0.5
     fy = v * (h - 1)
     x0 = jnp.floor(fx)
@@ -70,6 +75,45 @@ def lookup(env_type: str, data: EnvData, dirs):
     x1i = (x0i + 1) % w
     y0i = y0.astype(jnp.int32)
     y1i = y0i + 1
-    top = img[y0i, x0i] * (1 - wx) + img[y0i, x1i] * wx
-    bot = img[y1i, x0i] * (1 - wx) + img[y1i, x1i] * wx
-    return top * (1 - wy) + bot * wy
+    a, b = img[y0i, x0i], img[y0i, x1i]
+    c, d = img[y1i, x0i], img[y1i, x1i]
+    top = a + (b - a) * wx
+    bot = c + (d - c) * wx
+    value = top + (bot - top) * wy
+    d_u = ((b - a) + ((d - c) - (b - a)) * wy) * w
+    d_v = (bot - top) * (h - 1)
+    return value, d_u, d_v
+
+
+@jax.custom_jvp
+def _envmap(img, dirs):
+    u, v, _, _ = _uv_and_polar(dirs)
+    return _bilinear(img, u, v)[0]
+
+
+@_envmap.defjvp
+def _envmap_jvp(primals, tangents):
+    """Derivative in the direction by hand (autodiff of the lookup compiled
+    ~2.5x slower, measured): the bilinear slopes times du = (x dz - z dx) /
+    (2 pi rho^2) of u = atan2(x, -z) / 2 pi and dv' = (y drho - rho dy) / pi
+    of v' = atan2(rho, y) / pi, rho = |v_xz|; du = 0 at the poles (u is
+    undefined there). The image is data: its tangent is ignored.
+    ``tests/test_dielectric_fit.py`` checks it against central differences."""
+    img, dirs = primals
+    _, ddirs = tangents
+    u, v, off_pole, rho = _uv_and_polar(dirs)
+    value, d_u, d_v = _bilinear(img, u, v)
+    x, y, z = dirs[..., 0], dirs[..., 1], dirs[..., 2]
+    dx, dy, dz = ddirs[..., 0], ddirs[..., 1], ddirs[..., 2]
+    r2 = jnp.where(off_pole, rho * rho, 1.0)
+    du = jnp.where(off_pole, (x * dz - z * dx) / r2, 0.0) / (2.0 * jnp.pi)
+    drho = jnp.where(off_pole, (x * dx + z * dz) / jnp.where(off_pole, rho, 1.0), 0.0)
+    dv = (y * drho - rho * dy) / (rho * rho + y * y) / jnp.pi
+    return value, d_u * du[..., None] + d_v * dv[..., None]
+
+
+def lookup(env_type: str, data: EnvData, dirs):
+    """Radiance (..., 3) arriving from directions ``dirs`` (..., 3)."""
+    if env_type != "envmap":
+        return jnp.broadcast_to(data.constant, dirs.shape)
+    return _envmap(data.image, dirs)

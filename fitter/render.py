@@ -173,12 +173,26 @@ def _env_unit(lobe, p, opts, geo: Geometry):
 def _specular(lobe, p, opts, geo: Geometry, env: EnvData, sphere, env_type):
     theta, unflatten = _param_vector(lobe, p)
 
-    def radiance(theta, geo, env, sphere):
+    def call(fn, theta, geo, env, sphere):
         hit = SurfaceHit(geo.position, geo.normal, geo.ray_dir, sphere[0], sphere[1])
-        rad = lobe.radiance(unflatten(theta), opts, hit, functools.partial(lookup, env_type, env))
-        return jnp.einsum("pkc,k->pc", jnp.where(geo.hit[..., None], rad, 0.0), geo.sample_weight)
+        return fn(unflatten(theta), opts, hit, functools.partial(lookup, env_type, env))
 
-    return _with_local_jacobian(radiance, theta, geo, env, sphere)
+    def pixel_sum(rad, geo):  # (..., P, K, 3) -> (..., P, 3), over the hitting samples
+        return jnp.einsum("...pkc,k->...pc", jnp.where(geo.hit[..., None], rad, 0.0),
+                          geo.sample_weight)
+
+    def radiance(theta, geo, env, sphere):
+        return pixel_sum(call(lobe.radiance, theta, geo, env, sphere), geo)
+
+    def radiance_and_jac(theta, geo, env, sphere):
+        g, dg = call(lobe.radiance_grad, theta, geo, env, sphere)
+        # Summed over samples first (linear), then spread over the columns.
+        out = _columns(pixel_sum(g, geo), {k: pixel_sum(v, geo) for k, v in dg.items()},
+                       unflatten(theta))
+        return out[0], jnp.moveaxis(out[1:], 0, -1)
+
+    return _with_local_jacobian(radiance, theta, geo, env, sphere,
+                                value_and_jac=radiance_and_jac if lobe.radiance_grad else None)
 
 
 @functools.partial(jax.jit, static_argnames=("material", "env_type"))

@@ -31,7 +31,17 @@ A lobe is one of two kinds:
   outgoing radiance towards the camera (``hit``: a ``SurfaceHit``; ``env``: a
   callable direction (..., 3) -> RGB radiance (..., 3)). Its ``scale``, if
   any, names a parameter the radiance is linear in (mirror's ``rho_m``); the
-  renderer does not use it, the exposure's degeneracy check does.
+  renderer does not use it, the exposure's degeneracy check does. Optionally
+  ``radiance_grad(p, opts, hit, env) -> (radiance, {name: d radiance / d
+  name})`` gives its derivatives by hand, each (..., 3) (an RGB parameter:
+  the diagonal, channel c by its channel c), as ``shape_grad`` does.
+  Optionally ``start_search`` (a ``StartSearch``) finds a start for the
+  solver by a coarse search where the cost has narrow basins
+  (``fitter.fit._search``). Optionally ``cheapest_options(p, opts, hit,
+  weight, env_max, tolerance) -> {option: value}`` lowers options that set
+  the work (the dielectric's bounce count) as far as what they leave out
+  stays below ``tolerance`` (3,) radiance in every pixel; the fitter passes
+  its noise level.
 
 Lobes add (the lecture's linearity of BRDFs). Adding a lobe is one module
 defining ``LOBE = Lobe(...)`` plus one entry in ``fitter.bsdf.registry``: the
@@ -203,6 +213,20 @@ class Hints:
     reciprocal: bool = True
 
 
+class StartSearch(NamedTuple):
+    """A lobe's coarse search for the solver's start (``fitter.fit._search``).
+
+    ``rounds(p, free, box)``: one function per round, (best point so far) ->
+    a grid, ``p`` with arrays of candidates (the start is the first round's
+    best; ``free`` names the free parameters, ``box`` maps them to (lower,
+    upper)). ``best(grid, opts, hit, env, cost) -> p``: the point of the grid
+    with the lowest ``cost(model (..., 3)) -> (3,)`` (per channel).
+    """
+
+    rounds: Callable
+    best: Callable
+
+
 @dataclasses.dataclass(frozen=True)
 class Lobe:
     """One BSDF lobe (see the module docstring for ``kind``, ``shape``, ``radiance``).
@@ -229,6 +253,9 @@ class Lobe:
     shape: Callable | None = None
     shape_grad: Callable | None = None
     radiance: Callable | None = None
+    radiance_grad: Callable | None = None
+    start_search: StartSearch | None = None
+    cheapest_options: Callable | None = None
     doc: str = ""
     mitsuba: MitsubaMapping | None = None
     transmissive: bool = False

@@ -1,6 +1,7 @@
 """The public drivers, target image(s) -> FitResult.
 
-Flow: set up the problem -> hold parameters without effect at the start ->
+Flow: set up the problem -> search the start and cut work options where a lobe
+has them (``_search``) -> hold parameters without effect at the start ->
 solve from one or more starts (one compiled call) -> keep the lowest cost ->
 check identifiability at the solution, hold and refit -> verdict.
 """
@@ -23,6 +24,7 @@ from ._compile import best_start, compiled, jac_res, r_factor, remember_jacobian
 from ._covariance import residual_variance
 from ._identify import WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction
 from ._problem import blocks_of, format_value, user_values, z_from_params
+from ._search import cheapened, searched
 from ._setup import START_MARGIN, FitError, Problem
 from ._starts import starts as make_starts
 from ._verdict import all_held, report, start_status
@@ -105,6 +107,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                            loss_scale=loss_scale, saturation=saturation, max_steps=max_steps,
                            rtol=rtol, atol=atol, dtype=dtype, base_dir=base_dir)
     say = progress or _quiet
+    problem = cheapened(searched(problem))
     t_compile = 0.0
     if identifiability:
         say("checking which parameters the pixels depend on")
