@@ -306,51 +306,196 @@ def unlit(scene, material) -> str | None:
             "add a light or an environment")
 
 
-def _frame(r):
-    """Orthonormal (t, b) completing unit vectors r (..., 3)."""
-    a = np.where(np.abs(r[..., :1]) < 0.9, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
-    t = np.cross(a, r)
-    t /= np.linalg.norm(t, axis=-1, keepdims=True)
-    return t, np.cross(r, t)
+#: Nodes in theta_o (0 .. pi/2, uniform) at which a lobe is evaluated on the stencil.
+#: The renderer evaluates the lobe once per node and cell (T x N values per step, not
+#: one per env sample and cell) and interpolates cos_o x lobe linearly in theta_o per
+#: sample; ``benchmarks/envlight.py`` measures the error against exact per-sample
+#: evaluation and against Mitsuba per node count (``lobe_nodes`` there).
+LOBE_NODES = 257
 
 
-def sky_stencil(sky: Pyramid, normal, view, chunk: int = 2048):
-    """Per env sample: cell directions (S, N, 3) and c = int L max(cos_i, 0) dw (S, N, 3).
+@functools.cache
+def node_geometry(nodes: int = LOBE_NODES):
+    """``Cosines`` (T, N) of the stencil cells at the theta_o nodes and the weight (T, N)
+    cos_o x [cell lit] by which the renderer multiplies a lobe there. Local frame:
+    r = +z, n = (sin t, 0, cos t), wo = (sin 2t, 0, cos 2t). Unlit cells get the
+    normal as a harmless stand-in direction (weight 0)."""
+    from .bsdf.base import cosines
 
-    ``normal`` and ``view`` (S, 3): unit normal and unit direction to the camera
-    (n . view > 0). c = Q(theta_o) x the prefiltered radiance at the cell's
-    cos-weighted centroid, Q tabulated per cell (exact for a constant sky).
-    Cells that receive nothing get the normal as a harmless stand-in direction.
+    q_tab, cen_tab, _ = _tables()
+    th = np.linspace(0.0, np.pi / 2, nodes)
+    x = th / (np.pi / 2) * (N_THETA - 1)
+    i0 = np.clip(np.floor(x).astype(np.int64), 0, N_THETA - 2)
+    f = (x - i0)[:, None]
+    q = q_tab[i0] * (1 - f) + q_tab[i0 + 1] * f
+    d = cen_tab[i0] * (1 - f[..., None]) + cen_tab[i0 + 1] * f[..., None]
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    n = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)[:, None]
+    wo = np.stack([np.sin(2 * th), np.zeros_like(th), np.cos(2 * th)], -1)[:, None]
+    lit = (q > 0) & (np.sum(d * n, -1) > 0)
+    d = np.where(lit[..., None], d, n)
+    cos = cosines(np.broadcast_to(n, d.shape), d, np.broadcast_to(wo, d.shape))
+    return cos, np.where(lit, np.cos(th)[:, None], 0.0)
+
+
+#: Env samples per block of the sky sum: a block holds samples of one theta_o node only,
+#: so the sum is one batched matrix product (blocks x (B x 3, N) @ (N, columns)) with
+#: the lobe's values at two nodes per block, not a per-sample gather (~20x slower here).
+BLOCK = 16
+
+
+def blocks(node, block: int = BLOCK):
+    """Blocked order of env samples by node: (order (R,) sample index or -1 for padding,
+    block_node (R / block,)); each block's samples share one node."""
+    node = np.asarray(node)
+    order, bnode = [], []
+    srt = np.argsort(node, kind="stable")
+    bounds = np.searchsorted(node[srt], np.arange(int(node.max(initial=-1)) + 2))
+    for j in range(bounds.size - 1):
+        idx = srt[bounds[j]:bounds[j + 1]]
+        if idx.size:
+            nb = -(-idx.size // block)
+            order.append(np.concatenate([idx, np.full(nb * block - idx.size, -1)]))
+            bnode += [j] * nb
+    if not order:
+        return np.zeros(0, np.int64), np.zeros(0, np.int32)
+    return np.concatenate(order), np.asarray(bnode, np.int32)
+
+
+def sky_sum(h, block_node, frac, c):
+    """Per env sample sum over cells of the node-interpolated h times c (JAX).
+
+    h: (..., T, N) or (..., T, N, 3) lobe x ``node_geometry`` weight (an RGB
+    last axis for coloured lobes); block_node (nb,); frac (R,) the sample's
+    position between its block's node and the next; c (nb, B x 3, N): samples
+    x RGB rows (``sky_table``, blocked by ``blocks``). Returns (..., R, 3).
     """
-    q_tab, cen_tab, size_tab = _tables()
-    s, n = normal.shape[0], size_tab.shape[1]
-    lev = np.clip(np.log2(size_tab[0] / sky.texel), 0, len(sky.levels) - 1)  # size: theta-free
-    out_dir = np.zeros((s, n, 3))
-    out_c = np.zeros((s, n, 3))
-    for lo in range(0, s, chunk):
-        nrm, wo = normal[lo:lo + chunk], view[lo:lo + chunk]
-        co = np.clip(np.sum(nrm * wo, -1), -1.0, 1.0)
+    import jax.numpy as jnp
+
+    rgb = h.shape[-1] == 3 and h.shape[-2] == c.shape[-1]
+    nd = 3 if rgb else 2
+    lead = h.shape[:h.ndim - nd]
+    nb, rows, n = c.shape
+    b = rows // 3
+    # (T, N, [3,] K): the lobe's columns (lead axes) last, for a plain batched matmul.
+    ht = jnp.moveaxis(h.reshape((-1,) + h.shape[-nd:]), 0, -1)
+    h0 = jnp.take(ht, block_node, axis=0)
+    h1 = jnp.take(ht, block_node + 1, axis=0)
+    k = ht.shape[-1]
+    if rgb:  # per channel: (nb, B, 3, N) x (nb, N, 3, K)
+        c4 = c.reshape(nb, b, 3, n).astype(h.dtype)
+        out = jnp.einsum("bscn,bnck->bsck", c4, jnp.concatenate([h0, h1], -1))
+    else:
+        out = jnp.einsum("brn,bnk->brk", c.astype(h.dtype), jnp.concatenate([h0, h1], -1))
+        out = out.reshape(nb, b, 3, 2 * k)
+    f = frac.reshape(nb, b, 1, 1).astype(h.dtype)
+    val = out[..., :k] + (out[..., k:] - out[..., :k]) * f  # (nb, B, 3, K)
+    val = jnp.moveaxis(val.reshape(nb * b, 3, k), -1, 0)  # (K, R, 3)
+    return val.reshape(lead + (nb * b, 3))
+
+
+def _flat_levels(sky: Pyramid):
+    """The pyramid's levels in one flat (sum h w, 3) array with per-level (h, w, offset)."""
+    flat = np.concatenate([lv.reshape(-1, 3) for lv in sky.levels])
+    shp = np.array([lv.shape[:2] for lv in sky.levels])
+    off = np.concatenate([[0], np.cumsum(shp[:, 0] * shp[:, 1])[:-1]])
+    return flat, shp[:, 0], shp[:, 1], off
+
+
+@functools.cache
+def _table_fn():
+    """The jitted per-chunk tabulation of ``sky_table`` (JAX, float64)."""
+    import jax
+    import jax.numpy as jnp
+
+    def bil(flat, h, w, off, u, v):  # Mitsuba's bilinear lookup, per cell's level
+        hf, wf = h.astype(u.dtype), w.astype(u.dtype)
+        fx, fy = u * wf - 0.5, v * (hf - 1)
+        x0 = jnp.floor(fx)
+        y0 = jnp.clip(jnp.floor(fy), 0.0, hf - 2)
+        wx, wy = (fx - x0)[..., None], jnp.clip(fy - y0, 0.0, 1.0)[..., None]
+        x0i = jnp.mod(x0.astype(jnp.int32), w)
+        x1i = jnp.mod(x0i + 1, w)
+        y0i = y0.astype(jnp.int32) * w + off
+        t = lambda i: jnp.take(flat, i, axis=0)  # noqa: E731
+        top = t(y0i + x0i) * (1 - wx) + t(y0i + x1i) * wx
+        bot = t(y0i + w + x0i) * (1 - wx) + t(y0i + w + x1i) * wx
+        return top * (1 - wy) + bot * wy
+
+    def fn(nrm, wo, wt, q_tab, cen_tab, flat, lh, lw, loff, lo, fl):
+        co = jnp.clip(jnp.sum(nrm * wo, -1), 0.0, 1.0)
         r = 2.0 * co[:, None] * nrm - wo
         t = nrm - co[:, None] * r
-        tn = np.linalg.norm(t, axis=-1, keepdims=True)
-        t0, _ = _frame(r)
-        t = np.where(tn > 1e-9, t / np.where(tn > 0, tn, 1.0), t0)
-        b = np.cross(r, t)
-        x = np.arccos(np.clip(co, 0.0, 1.0)) / (np.pi / 2) * (N_THETA - 1)
-        i0 = np.clip(np.floor(x).astype(np.int64), 0, N_THETA - 2)
-        f = (x - i0)[:, None]
+        tn = jnp.linalg.norm(t, axis=-1, keepdims=True)
+        a = jnp.where(jnp.abs(r[:, :1]) < 0.9, jnp.array([1.0, 0, 0]), jnp.array([0, 1.0, 0]))
+        t0 = jnp.cross(a, r)
+        t0 = t0 / jnp.linalg.norm(t0, axis=-1, keepdims=True)
+        t = jnp.where(tn > 1e-9, t / jnp.where(tn > 0, tn, 1.0), t0)
+        b = jnp.cross(r, t)
+        th = jnp.arccos(co)
+        x = th / (jnp.pi / 2) * (q_tab.shape[0] - 1)
+        i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, q_tab.shape[0] - 2)
+        f = (x - i0.astype(x.dtype))[:, None]
         q = q_tab[i0] * (1 - f) + q_tab[i0 + 1] * f  # (C, N)
         cl = cen_tab[i0] * (1 - f[..., None]) + cen_tab[i0 + 1] * f[..., None]
         d = cl[..., :1] * t[:, None] + cl[..., 1:2] * b[:, None] + cl[..., 2:] * r[:, None]
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        u, v = dir_to_uv(d)
-        rad = np.zeros(d.shape)
-        for k, img in enumerate(sky.levels):  # trilinear: cells sit at fixed levels
-            wk = np.clip(1.0 - np.abs(lev - k), 0.0, 1.0)
-            cols = np.nonzero(wk > 0)[0]
-            if cols.size:
-                rad[:, cols] += wk[cols, None] * bilinear(img, u[:, cols], v[:, cols])
-        lit = (q > 0) & (np.sum(d * nrm[:, None], -1) > 0)
-        out_dir[lo:lo + chunk] = np.where(lit[..., None], d, nrm[:, None])
-        out_c[lo:lo + chunk] = np.where(lit[..., None], rad * q[..., None], 0.0)
-    return out_dir, out_c
+        d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+        u = jnp.arctan2(d[..., 0], -d[..., 2]) / (2.0 * jnp.pi)
+        u = u - jnp.floor(u)
+        v = jnp.arctan2(jnp.hypot(d[..., 0], d[..., 2]), d[..., 1]) / jnp.pi
+        rad = (bil(flat, lh[lo], lw[lo], loff[lo], u, v) * (1 - fl)[:, None]
+               + bil(flat, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
+        lit = (q > 0) & (jnp.sum(d * nrm[:, None], -1) > 0)
+        c = jnp.where(lit[..., None], rad * (q * wt[:, None] / co[:, None])[..., None], 0.0)
+        return jnp.swapaxes(c, 1, 2)  # (C, 3, N)
+
+    return jax.jit(fn)
+
+
+def sky_table(sky: Pyramid, normal, view, weight=None, nodes: int = LOBE_NODES,
+              chunk: int = 2048):
+    """Env samples in blocks (``blocks``) and their sky-stencil weights.
+
+    ``normal``, ``view`` (S, 3): unit normal and unit direction to the camera
+    (n . view > 0); ``weight`` (S,) the sample's quadrature weight (default 1).
+    Returns (order (R,): sample index, -1 for padding; block_node (nb,); frac
+    (R,); c (nb, B x 3, N)) with c = weight x Q(theta_o) x the prefiltered
+    radiance at the cell's cos-weighted centroid / cos_o, per sample, RGB
+    channel and cell; Q = int_cell max(cos_i, 0) dw is tabulated per cell
+    (exact for a constant sky), and the 1/cos_o undoes the cos_o that
+    ``node_geometry`` folds into the lobe (smooth up to the horizon).
+    """
+    import jax.numpy as jnp
+
+    q_tab, cen_tab, size_tab = _tables()
+    flat, lh, lw, loff = _flat_levels(sky)
+    lev = np.clip(np.log2(size_tab[0] / sky.texel), 0, len(sky.levels) - 1)  # theta-free
+    lo = np.minimum(np.floor(lev).astype(np.int32), max(len(sky.levels) - 2, 0))
+    fl = lev - lo
+    if len(sky.levels) == 1:  # a single level: look it up twice
+        lh, lw, loff = (np.concatenate([a, a]) for a in (lh, lw, loff))
+    lh, lw, loff = (np.asarray(a, np.int32) for a in (lh, lw, loff))
+    weight = np.ones(normal.shape[0]) if weight is None else np.asarray(weight, np.float64)
+    xn = np.arccos(np.clip(np.sum(normal * view, -1), 0.0, 1.0)) / (np.pi / 2) * (nodes - 1)
+    node = np.clip(np.floor(xn).astype(np.int32), 0, nodes - 2)
+    order, bnode = blocks(node)
+    pad = order < 0
+    pick = np.where(pad, 0, order)
+    nrm = np.where(pad[:, None], [0.0, 0.0, 1.0], normal[pick] if pick.size else np.zeros((0, 3)))
+    wo = np.where(pad[:, None], [0.0, 0.0, 1.0], view[pick] if pick.size else np.zeros((0, 3)))
+    wt = np.where(pad, 0.0, weight[pick] if pick.size else 0.0)
+    frac = np.where(pad, 0.0, (xn - node)[pick] if pick.size else 0.0)
+    fn = _table_fn()
+    consts = [jnp.asarray(a) for a in (q_tab, cen_tab, flat, lh, lw, loff, lo, fl)]
+    r = order.size
+    c = np.zeros((r, 3, size_tab.shape[1]))
+    step = min(chunk, r) if r else 1
+    extra = (-r) % step  # every chunk the same shape: one compilation
+    nrm = np.concatenate([nrm, np.tile([[0.0, 0.0, 1.0]], (extra, 1))])
+    wo = np.concatenate([wo, np.tile([[0.0, 0.0, 1.0]], (extra, 1))])
+    wt = np.concatenate([wt, np.zeros(extra)])
+    for i in range(0, r, step):
+        k = min(step, r - i)
+        c[i:i + k] = np.asarray(fn(*(jnp.asarray(x[i:i + step]) for x in (nrm, wo, wt)),
+                                   *consts))[:k]
+    return order, bnode, frac, c.reshape(bnode.size, -1, c.shape[-1])

@@ -39,17 +39,24 @@ class Geometry(NamedTuple):
         light_color: (L, 3) RGB intensity (W/sr) or irradiance (W/m^2).
         background: (P, 3) weighted sum of what missing samples see.
         background_image: (H*W, 3) the image with no sphere.
-        env_index: (S,) int, active-pixel row of each env sample (pixel
+        env_index: (R,) int, active-pixel row of each env sample (pixel
             centres inside the sphere, hitting sub-pixel samples on its
-            silhouette; ``fitter.envlight``); (0,) without environment light.
-        env_cosines: ``Cosines`` of (cell direction, view direction), each
-            (S, N): the sky-stencil cells of each env sample that receive
-            light (N the most any sample has; the others a stand-in).
-        env_color: (S, N, 3) int over the cell of L cos_i dw, times the
-            sample's weight in its pixel (0 for stand-ins).
+            silhouette and limb; ``fitter.envlight``), -1 for padding; (0,)
+            without environment light. Samples come in blocks of
+            ``envlight.BLOCK`` sharing one theta_o node (``envlight.blocks``).
+        env_node: (R / B,) int, each block's theta_o node; env_frac (R,) the
+            sample's position towards the next node (``envlight.sky_table``).
+        env_color: (R / B, B x 3, N), per sample and RGB channel and
+            sky-stencil cell int L cos_i dw times the sample's weight in its
+            pixel / cos_o (0 for unlit cells and padding).
+        env_cosines: ``Cosines`` (T, N) of the cells at the theta_o nodes and
+            env_node_weight (T, N) cos_o x [cell lit] there
+            (``envlight.node_geometry``): the lobe is evaluated on these only.
 
-    The environment's sun cells are extra directional lights (the last rows
-    of the per-light arrays).
+        sun: the environment's sun cells as directional lights on their own
+            sample sets (``sun_samples``): a tuple of groups (index (Q,)
+            active-pixel row, ``Cosines`` (L, Q), weight (L, Q) = sample
+            weight x cos_i where lit, colour (L, 3) irradiance); () without.
     """
 
     pixel_index: np.ndarray
@@ -64,8 +71,12 @@ class Geometry(NamedTuple):
     background: np.ndarray
     background_image: np.ndarray
     env_index: np.ndarray
-    env_cosines: Cosines
+    env_node: np.ndarray
+    env_frac: np.ndarray
     env_color: np.ndarray
+    env_cosines: Cosines
+    env_node_weight: np.ndarray
+    sun: tuple = ()
 
     def subset(self, rows: np.ndarray) -> "Geometry":
         """The geometry of the active pixels ``rows`` only (NumPy arrays)."""
@@ -73,12 +84,20 @@ class Geometry(NamedTuple):
         pick = lambda a: np.asarray(a)[rows]  # noqa: E731
         inv = np.full(np.asarray(self.hit).shape[0], -1)
         inv[rows] = np.arange(len(rows))
-        env_rows = inv[np.asarray(self.env_index)]
+        idx = np.asarray(self.env_index)
+        env_rows = np.where(idx >= 0, inv[np.maximum(idx, 0)], -1)
         keep = env_rows >= 0
-        env = lambda a: np.asarray(a)[keep]  # noqa: E731
+        c = np.asarray(self.env_color)
+        c = c.reshape(keep.size, 3, -1) if c.size else np.zeros((0, 3, 0))
+        node = np.repeat(np.asarray(self.env_node), c.shape[0] // max(len(self.env_node), 1))
+        e_rows, e_node, e_frac, e_c = _blocked(env_rows[keep], node[keep],
+                                               np.asarray(self.env_frac)[keep], c[keep])
+        sun = tuple((inv[np.asarray(i)][inv[np.asarray(i)] >= 0],
+                     Cosines(*(np.asarray(a)[:, inv[np.asarray(i)] >= 0] for a in cs)),
+                     np.asarray(wt)[:, inv[np.asarray(i)] >= 0], np.asarray(col))
+                    for i, cs, wt, col in self.sun)
         return self._replace(
-            env_index=env_rows[keep], env_cosines=Cosines(*(env(a) for a in self.env_cosines)),
-            env_color=env(self.env_color),
+            sun=sun, env_index=e_rows, env_node=e_node, env_frac=e_frac, env_color=e_c,
             pixel_index=pick(self.pixel_index), hit=pick(self.hit),
             position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
             cosines=Cosines(*(per_light(a) for a in self.cosines)),
@@ -172,6 +191,65 @@ def env_samples(scene: Scene, hit, t, o, d, weight, pixel_index):
     return rows, normal, -ray, wts
 
 
+#: Sun samples: a pixel gets every sub-pixel sample and every sun cell where some sample's
+#: normal is within ``SUN_CONE`` rad of the half vector of the sun's centroid direction
+#: (the highlight of any lobe; at 0.5 rad Phong e = 50 has fallen to 1e-6 of its peak,
+#: Beckmann m = 0.1 to e^-30) or sees the sun within ``SUN_EDGE`` of its horizon; every
+#: other pixel sees one directional light (the cells' sum, at their centroid) from its
+#: env samples (``env_samples``: the centre, or every sub-sample at the limb and
+#: silhouette), where the lobes are smooth on the scale of the sun's 0.05 rad.
+SUN_CONE = 0.5
+SUN_EDGE = 0.1
+
+
+def _sun_group(n, v, w, rows, dirs, irr):
+    """(index, Cosines (L, Q), weight (L, Q), colour (L, 3)) of lights ``dirs`` (L, 3)."""
+    d = np.broadcast_to(dirs[:, None], (dirs.shape[0],) + n.shape)
+    cos = Cosines(*(np.asarray(a) for a in cosines(np.broadcast_to(n, d.shape), d,
+                                                   np.broadcast_to(v, d.shape))))
+    lit = (cos.cos_i > 0) & (cos.cos_o > 0)
+    stand_in = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
+    cos = Cosines(*(np.where(lit, a, b) for a, b in zip(cos, stand_in)))
+    return rows, cos, np.where(lit, w * cos.cos_i, 0.0), np.asarray(irr, np.float64)
+
+
+def sun_samples(lighting, hit, normal, view, weight, e_rows, e_n, e_v, e_w):
+    """The sun's sample groups (``Geometry.sun``): every sample x every cell near the
+    highlight and the sun's horizon, one merged light on the env samples elsewhere."""
+    if not lighting.sun_dir.shape[0]:
+        return ()
+    lum = lighting.sun_irradiance @ np.array([0.2126, 0.7152, 0.0722])
+    lc = (lighting.sun_dir * lum[:, None]).sum(0)
+    lc /= np.linalg.norm(lc)
+    h = lc + view
+    h /= np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-300)
+    cn = normal @ lc
+    near = hit & ((np.sum(normal * h, -1) > np.cos(SUN_CONE)) | (np.abs(cn) < SUN_EDGE))
+    near_pix = near.any(1)
+    p, k = np.nonzero(hit & near_pix[:, None])
+    far = ~near_pix[e_rows]
+    return (_sun_group(normal[p, k], view[p, k], weight[k], p, lighting.sun_dir,
+                       lighting.sun_irradiance),
+            _sun_group(e_n[far], e_v[far], e_w[far], e_rows[far], lc[None],
+                       lighting.sun_irradiance.sum(0, keepdims=True)))
+
+
+def _blocked(rows, node, frac, c):
+    """Env samples in ``envlight.blocks`` order: (rows (R,), -1 for padding; block node
+    (nb,); frac (R,); c (nb, B x 3, N)) from per-sample rows, node, frac, c (S, 3, N)."""
+    from .envlight import blocks
+
+    order, bnode = blocks(node)
+    pad = order < 0
+    pick = np.where(pad, 0, order)
+    if not order.size:
+        return np.zeros(0, np.int64), bnode, np.zeros(0), np.zeros((0, 0, 0))
+    c = c[pick]
+    c[pad] = 0.0
+    return (np.where(pad, -1, rows[pick]), bnode, np.where(pad, 0.0, frac[pick]),
+            c.reshape(bnode.size, -1, c.shape[-1]))
+
+
 def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> Geometry:
     """Trace the camera rays against the sphere and tabulate the lights.
 
@@ -210,36 +288,27 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
     miss_a = miss_rad.reshape(h * w, k2, 3)[pixel_index]
     background = np.einsum("pkc,k->pc", np.where(hit[..., None], 0.0, miss_a), weight)
 
-    sun = (lighting.sun_dir, lighting.sun_irradiance) if lighting is not None else ()
-    light_dir, falloff, color = light_terms(scene.lights, pos, *sun)
+    light_dir, falloff, color = light_terms(scene.lights, pos)
     cos = Cosines(*(np.asarray(a) for a in cosines(normal, light_dir, -d_a)))
     lit = hit & (cos.cos_i > 0) & (cos.cos_o > 0)
     stand_in = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
     cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, stand_in)))
     light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
     if lighting is not None:
-        from .envlight import sky_stencil
+        from .envlight import node_geometry, sky_table
 
         t_h = np.where(hit, t.reshape(h * w, k2)[pixel_index], 0.0)
         rows, e_n, e_v, e_w = env_samples(scene, hit, t_h, o_a, d_a, weight, pixel_index)
         ok = np.sum(e_n * e_v, -1) > 0
+        sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
         rows, e_n, e_v, e_w = rows[ok], e_n[ok], e_v[ok], e_w[ok]
-        e_dir, e_c = sky_stencil(lighting.sky, e_n, e_v)
-        e_c *= e_w[:, None, None]
-        # Keep only the cells that receive light: lit ones first, as many as the most any has.
-        lit = np.any(e_c > 0, axis=-1)
-        order = np.argsort(~lit, axis=1, kind="stable")[:, :max(int(lit.sum(1).max()), 1)]
-        e_dir = np.take_along_axis(e_dir, order[..., None], 1)
-        e_c = np.take_along_axis(e_c, order[..., None], 1)
-        e_cos = Cosines(*(np.empty(e_dir.shape[:2]) for _ in Cosines._fields))
-        for lo in range(0, e_dir.shape[0], 1024):  # in chunks: cache-sized temporaries
-            sl = slice(lo, lo + 1024)
-            part = cosines(np.broadcast_to(e_n[sl, None], e_dir[sl].shape), e_dir[sl],
-                           np.broadcast_to(e_v[sl, None], e_dir[sl].shape))
-            for dst, src in zip(e_cos, part):
-                dst[sl] = src
+        order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w)
+        rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
+        e_cos, e_nw = node_geometry()
     else:
-        rows, e_c = np.zeros(0, np.int64), np.zeros((0, 0, 3))
+        rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
+        e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))
         e_cos = Cosines(*(np.zeros((0, 0)),) * 6)
+        sun = ()
     return Geometry(pixel_index, hit, weight, pos, normal, d_a, cos, light_weight, color,
-                    background, background_image, rows, e_cos, e_c)
+                    background, background_image, rows, node, frac, e_c, e_cos, e_nw, sun)

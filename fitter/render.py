@@ -28,7 +28,7 @@ import numpy as np
 
 from . import checks
 from ._modules import make_callable
-from .bsdf.base import SurfaceHit
+from .bsdf.base import Cosines, SurfaceHit
 from .environment import EnvData, load_environment, lookup
 from .geometry import Geometry, build_geometry
 from .material import Material, MaterialError, lobe_params
@@ -113,8 +113,12 @@ def _columns(g, dg, q):
     return jnp.stack(cols)
 
 
-def _brdf_unit(lobe, p, opts, geo: Geometry):
-    """Sum over lights and samples of shape * weight * light colour: (P, 3)."""
+def _brdf_unit(lobe, p, opts, geo: Geometry, lights=None):
+    """Sum over lights and samples of shape * weight * light colour: (P, 3).
+
+    ``lights``: (cosines (L, Q), weight (L, Q), colour (L, 3)) of a sample list
+    (the sun's, ``Geometry.sun``) instead of the scene lights: gives (Q, 3).
+    """
 
     def light_sum(g, weight, color, rgb):  # g: ([T,] L, P, K[, 3]); rgb: colour axis
         return jnp.einsum("...lpkc,lpk,lc->...pc" if rgb else "...lpk,lpk,lc->...pc",
@@ -133,6 +137,8 @@ def _brdf_unit(lobe, p, opts, geo: Geometry):
 
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
     args = (geo.cosines, geo.light_weight, geo.light_color)
+    if lights is not None:  # a sample list: K = 1
+        args = (Cosines(*(a[..., None] for a in lights[0])), lights[1][..., None], lights[2])
     if theta is None:
         return unit(None, *args)
     return _with_local_jacobian(unit, theta, *args,
@@ -140,21 +146,27 @@ def _brdf_unit(lobe, p, opts, geo: Geometry):
 
 
 def _env_unit(lobe, p, opts, geo: Geometry):
-    """Sum over the sky stencil of shape * (L cos dw) per pixel: (P, 3)."""
+    """Sum over the sky stencil of shape * (L cos dw) per pixel: (P, 3).
 
-    def unit(theta, cos, color):  # per env sample (S, 3)
-        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)
-        return jnp.einsum("snc,snc->sc" if g.ndim == color.ndim else "sn,snc->sc", g, color)
+    The lobe is evaluated once per theta_o node and cell (``envlight.node_geometry``),
+    then interpolated per env sample and summed against its cells (``envlight.sky_sum``).
+    """
+    from .envlight import sky_sum
 
-    def unit_and_jac(theta, cos, color):
+    def unit(theta, cos, wnode, node, frac, color):
+        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (T, N[, 3])
+        wn = wnode if g.ndim == wnode.ndim else wnode[..., None]
+        return sky_sum(g * wn, node, frac, color)
+
+    def unit_and_jac(theta, cos, wnode, node, frac, color):
         q = unflatten(theta)
         g, dg = lobe.shape_grad(q, opts, cos)
-        out = jnp.einsum("tsnc,snc->tsc" if g.ndim == color.ndim else "tsn,snc->tsc",
-                         _columns(g, dg, q), color)  # an RGB shape has a colour axis
+        wn = wnode if g.ndim == wnode.ndim else wnode[..., None]
+        out = sky_sum(_columns(g, dg, q) * wn, node, frac, color)  # (n + 1, S, 3)
         return out[0], jnp.moveaxis(out[1:], 0, -1)
 
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
-    args = (geo.env_cosines, geo.env_color)
+    args = (geo.env_cosines, geo.env_node_weight, geo.env_node, geo.env_frac, geo.env_color)
     if theta is None:
         per_sample = unit(None, *args)
     else:
@@ -193,6 +205,10 @@ def render_active(params, geo: Geometry, env: EnvData, sphere, *, material, env_
                 value = value + p[lobe.scale] * _brdf_unit(lobe, p, opts, geo)
             if geo.env_color.shape[0] and geo.env_color.shape[1]:
                 value = value + p[lobe.scale] * _env_unit(lobe, p, opts, geo)
+            for index, cos, weight, color in geo.sun:
+                if index.shape[0]:
+                    sun = _brdf_unit(lobe, p, opts, geo, (cos, weight, color))
+                    value = value + p[lobe.scale] * jnp.zeros_like(value).at[index].add(sun)
         else:
             value = value + _specular(lobe, p, opts, geo, env, sphere, env_type)
     return value
@@ -256,7 +272,9 @@ def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
         else jnp.asarray(a)  # noqa: E731
     sphere = (jnp.asarray(scene.sphere.center, dtype=dtype),
               jnp.asarray(scene.sphere.radius, dtype=dtype))
-    return jax.tree_util.tree_map(cast, geo), jax.tree_util.tree_map(cast, env64), sphere
+    env_color = jnp.asarray(geo.env_color)  # float32 (``envlight.sky_table`` says why)
+    geo = jax.tree_util.tree_map(cast, geo._replace(env_color=None))._replace(env_color=env_color)
+    return geo, jax.tree_util.tree_map(cast, env64), sphere
 
 
 @functools.lru_cache(maxsize=16)

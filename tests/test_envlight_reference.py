@@ -13,11 +13,11 @@ horizon cut or too coarse cells across a grazing microfacet lobe (the 2-6 %
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from fitter import envlight
-from fitter.bsdf.base import cosines
 from fitter.material import Material
 
 
@@ -82,15 +82,19 @@ CASES = {  # name: (project params, reference BRDF, tolerance (measured worst, t
 }
 
 
-def _model(params, n, wo):
+def _model(params, n, wo, nodes=envlight.LOBE_NODES):
+    """The renderer's sky term: the lobe on the theta_o nodes, interpolated per sample."""
     mat = Material.from_params(params)
     lobe = mat.lobe_objects[0]
     p = {k.split(".", 1)[1]: np.asarray(v, dtype=np.float64) for k, v in mat.full_params(
         {k: v for k, v in params.items() if not isinstance(v, (str, bool))}).items()}
-    d, c = envlight.sky_stencil(envlight.Pyramid(np.ones((2, 4, 3))), n[None], wo[None])
-    cos = cosines(np.broadcast_to(n, d[0].shape), d[0], np.broadcast_to(wo, d[0].shape))
-    g = np.asarray(lobe.shape(p, mat.options_of(lobe.name), cos))
-    return float(np.sum(g * c[0, :, 0]) * np.ravel(p[lobe.scale])[0])
+    order, bnode, frac, c = envlight.sky_table(envlight.Pyramid(np.ones((2, 4, 3))), n[None],
+                                               wo[None], nodes=nodes)
+    cos, wnode = envlight.node_geometry(nodes)
+    g = np.asarray(lobe.shape(p, mat.options_of(lobe.name), cos)) * wnode
+    val = np.asarray(envlight.sky_sum(jnp.asarray(g), jnp.asarray(bnode), jnp.asarray(frac),
+                                      jnp.asarray(c)))[order >= 0]
+    return float(val[0, 0] * np.ravel(p[lobe.scale])[0])
 
 
 @pytest.mark.parametrize("name", list(CASES))
