@@ -228,9 +228,11 @@ N_THETA = 129
 _FINE = 8  # sub-cells per cell side when tabulating
 
 
-def _cells(sub):
-    """Sub-cells of the stencil about +z in (cos alpha, phi, d cos, d phi, cell id) and the
-    number of cells: rings in alpha (``RING_EDGES``), each cut into azimuthal sectors."""
+def _cells(sub, sub_phi=None):
+    """Sub-cells (``sub`` in alpha x ``sub_phi`` in phi per cell, consecutive) of the stencil
+    about +z in (cos alpha, phi, d cos, d phi, cell id) and the number of cells: rings in
+    alpha (``RING_EDGES``), each cut into azimuthal sectors, one centred on phi = 0."""
+    sub_phi = sub if sub_phi is None else sub_phi
     ct, ph, dct, dph, cell = [], [], [], [], []
     n = 0
     for a0, a1 in zip(RING_EDGES[:-1], RING_EDGES[1:]):
@@ -240,11 +242,11 @@ def _cells(sub):
         ca = np.cos(np.linspace(a0, a1, sub + 1))
         for j in range(nphi):
             for sa in range(sub):
-                for sp in range(sub):
+                for sp in range(sub_phi):
                     ct.append(0.5 * (ca[sa] + ca[sa + 1]))  # equal-area midpoint in cos
-                    ph.append(2 * np.pi * (j + (sp + 0.5) / sub) / nphi - np.pi)
+                    ph.append(2 * np.pi * (j + (sp + 0.5) / sub_phi - 0.5) / nphi)
                     dct.append(ca[sa] - ca[sa + 1])
-                    dph.append(2 * np.pi / nphi / sub)
+                    dph.append(2 * np.pi / nphi / sub_phi)
                     cell.append(n)
             n += 1
     return tuple(np.array(a) for a in (ct, ph, dct, dph, cell)) + (n,)
@@ -314,28 +316,37 @@ def unlit(scene, material) -> str | None:
 LOBE_NODES = 257
 
 
+#: Points per cell (alpha x phi) at which the lobe is averaged: the sky's radiance is
+#: prefiltered to the cell's size, the lobe is not, and a microfacet lobe at grazing view
+#: is a stripe narrower than a sector (2 m cos(theta_o) across it). One point (the
+#: cell's centroid) was -/+17 % off at theta_o = 89 degrees for Beckmann m = 0.1 (sector
+#: edge / centre on the stripe); ``benchmarks/envlight.py`` measures the choices.
+LOBE_SUB = (2, 4)
+
+
 @functools.cache
-def node_geometry(nodes: int = LOBE_NODES):
-    """``Cosines`` (T, N) of the stencil cells at the theta_o nodes and the weight (T, N)
-    cos_o x [cell lit] by which the renderer multiplies a lobe there. Local frame:
-    r = +z, n = (sin t, 0, cos t), wo = (sin 2t, 0, cos 2t). Unlit cells get the
-    normal as a harmless stand-in direction (weight 0)."""
+def node_geometry(nodes: int = LOBE_NODES, sub: tuple = LOBE_SUB):
+    """``Cosines`` (T, N, M) of M points per stencil cell at the theta_o nodes and the
+    weights (T, N, M) by which the renderer sums a lobe there: cos_o x the point's
+    share of the cell's int max(cos_i, 0) dw. Local frame: r = +z, n = (sin t, 0,
+    cos t), wo = (sin 2t, 0, cos 2t). Points below the horizon get the normal as a
+    harmless stand-in direction (weight 0)."""
     from .bsdf.base import cosines
 
-    q_tab, cen_tab, _ = _tables()
+    ct, ph, dct, dph, cell, n_cells = _cells(*sub)
+    st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
+    d = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1).reshape(n_cells, -1, 3)
+    dw = (dct * dph).reshape(n_cells, -1)
     th = np.linspace(0.0, np.pi / 2, nodes)
-    x = th / (np.pi / 2) * (N_THETA - 1)
-    i0 = np.clip(np.floor(x).astype(np.int64), 0, N_THETA - 2)
-    f = (x - i0)[:, None]
-    q = q_tab[i0] * (1 - f) + q_tab[i0 + 1] * f
-    d = cen_tab[i0] * (1 - f[..., None]) + cen_tab[i0 + 1] * f[..., None]
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    n = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)[:, None]
-    wo = np.stack([np.sin(2 * th), np.zeros_like(th), np.cos(2 * th)], -1)[:, None]
-    lit = (q > 0) & (np.sum(d * n, -1) > 0)
-    d = np.where(lit[..., None], d, n)
-    cos = cosines(np.broadcast_to(n, d.shape), d, np.broadcast_to(wo, d.shape))
-    return cos, np.where(lit, np.cos(th)[:, None], 0.0)
+    n = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)[:, None, None]
+    wo = np.stack([np.sin(2 * th), np.zeros_like(th), np.cos(2 * th)], -1)[:, None, None]
+    ci = np.sum(d[None] * n, -1)  # (T, N, M)
+    w = np.maximum(ci, 0.0) * dw
+    tot = w.sum(-1, keepdims=True)
+    w = np.where(tot > 0, w / np.where(tot > 0, tot, 1.0), 0.0) * np.cos(th)[:, None, None]
+    dd = np.where((ci > 0)[..., None], d[None], n)
+    cos = cosines(np.broadcast_to(n, dd.shape), dd, np.broadcast_to(wo, dd.shape))
+    return cos, w
 
 
 #: Env samples per block of the sky sum: a block holds samples of one theta_o node only,

@@ -153,16 +153,18 @@ def _env_unit(lobe, p, opts, geo: Geometry):
     """
     from .envlight import sky_sum
 
+    def cell_mean(g, wnode):  # (..., T, N, M[, 3]) -> (..., T, N[, 3]), over a cell's points
+        rgb = g.ndim > wnode.ndim and g.shape[-1] == 3
+        return jnp.sum(g * wnode[..., None], -2) if rgb else jnp.sum(g * wnode, -1)
+
     def unit(theta, cos, wnode, node, frac, color):
-        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (T, N[, 3])
-        wn = wnode if g.ndim == wnode.ndim else wnode[..., None]
-        return sky_sum(g * wn, node, frac, color)
+        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (T, N, M[, 3])
+        return sky_sum(cell_mean(g, wnode), node, frac, color)
 
     def unit_and_jac(theta, cos, wnode, node, frac, color):
         q = unflatten(theta)
         g, dg = lobe.shape_grad(q, opts, cos)
-        wn = wnode if g.ndim == wnode.ndim else wnode[..., None]
-        out = sky_sum(_columns(g, dg, q) * wn, node, frac, color)  # (n + 1, S, 3)
+        out = sky_sum(cell_mean(_columns(g, dg, q), wnode), node, frac, color)  # (n + 1, S, 3)
         return out[0], jnp.moveaxis(out[1:], 0, -1)
 
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)

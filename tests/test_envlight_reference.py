@@ -91,7 +91,7 @@ def _model(params, n, wo, nodes=envlight.LOBE_NODES):
     order, bnode, frac, c = envlight.sky_table(envlight.Pyramid(np.ones((2, 4, 3))), n[None],
                                                wo[None], nodes=nodes)
     cos, wnode = envlight.node_geometry(nodes)
-    g = np.asarray(lobe.shape(p, mat.options_of(lobe.name), cos)) * wnode
+    g = np.sum(np.asarray(lobe.shape(p, mat.options_of(lobe.name), cos)) * wnode, -1)
     val = np.asarray(envlight.sky_sum(jnp.asarray(g), jnp.asarray(bnode), jnp.asarray(frac),
                                       jnp.asarray(c)))[order >= 0]
     return float(val[0, 0] * np.ravel(p[lobe.scale])[0])
