@@ -313,7 +313,7 @@ def unlit(scene, material) -> str | None:
 #: one per env sample and cell) and interpolates cos_o x lobe linearly in theta_o per
 #: sample; ``benchmarks/envlight.py`` measures the error against exact per-sample
 #: evaluation and against Mitsuba per node count (``lobe_nodes`` there).
-LOBE_NODES = 257
+LOBE_NODES = 97
 
 
 #: Points per cell (alpha x phi) at which the lobe is averaged: the sky's radiance is
@@ -324,29 +324,65 @@ LOBE_NODES = 257
 LOBE_SUB = (2, 4)
 
 
+def node_angles(nodes: int = LOBE_NODES):
+    """The theta_o nodes (T,): 0 .. pi/2, spaced ~(1 - x) dense towards grazing, where
+    cos_o x lobe bends fastest (the last spacing pi/2 / (T - 1)^2)."""
+    x = np.linspace(0.0, 1.0, nodes)
+    return np.pi / 2 * (1.0 - (1.0 - x) ** 2)
+
+
+def _node_of(theta, nodes):
+    """The lower node (int32) of angles theta and the linear fraction towards the next."""
+    x = (1.0 - np.sqrt(np.clip(1.0 - theta / (np.pi / 2), 0.0, 1.0))) * (nodes - 1)
+    node = np.clip(np.floor(x).astype(np.int32), 0, nodes - 2)
+    th = node_angles(nodes)
+    return node, (theta - th[node]) / (th[node + 1] - th[node])
+
+
 @functools.cache
 def node_geometry(nodes: int = LOBE_NODES, sub: tuple = LOBE_SUB):
     """``Cosines`` (T, N, M) of M points per stencil cell at the theta_o nodes and the
     weights (T, N, M) by which the renderer sums a lobe there: cos_o x the point's
-    share of the cell's int max(cos_i, 0) dw. Local frame: r = +z, n = (sin t, 0,
-    cos t), wo = (sin 2t, 0, cos 2t). Points below the horizon get the normal as a
-    harmless stand-in direction (weight 0)."""
+    share of the cell's Q = int max(cos_i, 0) dw. The points are the cos-weighted
+    centroids of ``sub`` = (alpha, phi) groups of the ``_FINE`` sub-cells that
+    tabulate Q, so the shares sum to exactly 1 where Q > 0 (Lambert stays exact).
+    Local frame: r = +z, n = (sin t, 0, cos t), wo = (sin 2t, 0, cos 2t). Points
+    that receive nothing get the normal as a harmless stand-in direction (weight 0).
+    """
     from .bsdf.base import cosines
 
-    ct, ph, dct, dph, cell, n_cells = _cells(*sub)
+    sa, sp = sub
+    if _FINE % sa or _FINE % sp:
+        raise ValueError(f"sub = {sub}: each must divide _FINE = {_FINE}")
+    ct, ph, dct, dph, cell, n_cells = _cells(_FINE)
     st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
-    d = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1).reshape(n_cells, -1, 3)
-    dw = (dct * dph).reshape(n_cells, -1)
-    th = np.linspace(0.0, np.pi / 2, nodes)
-    n = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)[:, None, None]
-    wo = np.stack([np.sin(2 * th), np.zeros_like(th), np.cos(2 * th)], -1)[:, None, None]
-    ci = np.sum(d[None] * n, -1)  # (T, N, M)
-    w = np.maximum(ci, 0.0) * dw
+    d = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1)
+    dw = dct * dph
+    k = np.arange(ct.size) % (_FINE * _FINE)
+    gid = cell * (sa * sp) + (k // _FINE) // (_FINE // sa) * sp + (k % _FINE) // (_FINE // sp)
+    ng = n_cells * sa * sp
+    th = node_angles(nodes)
+    w = np.zeros((nodes, ng))
+    cen = np.zeros((nodes, ng, 3))
+    for t in range(nodes):
+        wf = np.maximum(d @ np.array([np.sin(th[t]), 0.0, np.cos(th[t])]), 0.0) * dw
+        w[t] = np.bincount(gid, wf, ng)
+        for i in range(3):
+            cen[t, :, i] = np.bincount(gid, wf * d[:, i], ng)
+    n = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)[:, None]
+    wo = np.stack([np.sin(2 * th), np.zeros_like(th), np.cos(2 * th)], -1)[:, None]
+    norm = np.linalg.norm(cen, axis=-1, keepdims=True)
+    lit = w > 0
+    cen = np.where(lit[..., None], cen / np.where(norm > 0, norm, 1.0), n)
+    w = w.reshape(nodes, n_cells, -1)
     tot = w.sum(-1, keepdims=True)
     w = np.where(tot > 0, w / np.where(tot > 0, tot, 1.0), 0.0) * np.cos(th)[:, None, None]
-    dd = np.where((ci > 0)[..., None], d[None], n)
-    cos = cosines(np.broadcast_to(n, dd.shape), dd, np.broadcast_to(wo, dd.shape))
-    return cos, w
+    cos = cosines(np.broadcast_to(n, cen.shape), cen, np.broadcast_to(wo, cen.shape))
+    return _reshaped(cos, (nodes, n_cells, sa * sp)), w
+
+
+def _reshaped(cos, shape):
+    return type(cos)(*(np.reshape(a, shape) for a in cos))
 
 
 #: Env samples per block of the sky sum: a block holds samples of one theta_o node only,
@@ -487,15 +523,14 @@ def sky_table(sky: Pyramid, normal, view, weight=None, nodes: int = LOBE_NODES,
         lh, lw, loff = (np.concatenate([a, a]) for a in (lh, lw, loff))
     lh, lw, loff = (np.asarray(a, np.int32) for a in (lh, lw, loff))
     weight = np.ones(normal.shape[0]) if weight is None else np.asarray(weight, np.float64)
-    xn = np.arccos(np.clip(np.sum(normal * view, -1), 0.0, 1.0)) / (np.pi / 2) * (nodes - 1)
-    node = np.clip(np.floor(xn).astype(np.int32), 0, nodes - 2)
+    node, fr = _node_of(np.arccos(np.clip(np.sum(normal * view, -1), 0.0, 1.0)), nodes)
     order, bnode = blocks(node)
     pad = order < 0
     pick = np.where(pad, 0, order)
     nrm = np.where(pad[:, None], [0.0, 0.0, 1.0], normal[pick] if pick.size else np.zeros((0, 3)))
     wo = np.where(pad[:, None], [0.0, 0.0, 1.0], view[pick] if pick.size else np.zeros((0, 3)))
     wt = np.where(pad, 0.0, weight[pick] if pick.size else 0.0)
-    frac = np.where(pad, 0.0, (xn - node)[pick] if pick.size else 0.0)
+    frac = np.where(pad, 0.0, fr[pick] if pick.size else 0.0)
     fn = _table_fn()
     consts = [jnp.asarray(a) for a in (q_tab, cen_tab, flat, lh, lw, loff, lo, fl)]
     r = order.size
