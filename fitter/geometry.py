@@ -193,13 +193,16 @@ def env_samples(scene: Scene, hit, t, o, d, weight, pixel_index):
 
 #: Sun samples: a pixel gets every sub-pixel sample and every sun cell where some sample's
 #: normal is within ``SUN_CONE`` rad of the half vector of the sun's centroid direction
-#: (the highlight of any lobe; at 0.5 rad Phong e = 50 has fallen to 1e-6 of its peak,
-#: Beckmann m = 0.1 to e^-30) or sees the sun within ``SUN_EDGE`` of its horizon; every
-#: other pixel sees one directional light (the cells' sum, at their centroid) from its
-#: env samples (``env_samples``: the centre, or every sub-sample at the limb and
-#: silhouette), where the lobes are smooth on the scale of the sun's 0.05 rad.
-SUN_CONE = 0.5
-SUN_EDGE = 0.1
+#: (the highlight of any lobe: at 0.35 rad off the half vector Phong e = 100 is down to
+#: 1e-6 of its peak, Beckmann m = 0.1 to e^-12) or sees the sun within ``SUN_EDGE`` of
+#: its horizon; every other pixel sees one directional light (the cells' sum, at their
+#: centroid) from its env samples (``env_samples``: the centre, or every sub-sample at
+#: the limb and silhouette), where the lobes are smooth on the scale of the sun's
+#: 0.05 rad. Against every sample x every cell: at most 1.7e-4 relative (env_phong,
+#: env_plastic, interior pixels) with 47 k instead of 138 k sample x 32 cell evaluations
+#: for 25 k x 32 + 22 k x 1.
+SUN_CONE = 0.35
+SUN_EDGE = 0.05
 
 
 def _sun_group(n, v, w, rows, dirs, irr):
@@ -295,16 +298,17 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
     cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, stand_in)))
     light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
     if lighting is not None:
-        from .envlight import node_geometry, sky_table
+        from .envlight import Detail, node_geometry, sky_table
 
         t_h = np.where(hit, t.reshape(h * w, k2)[pixel_index], 0.0)
         rows, e_n, e_v, e_w = env_samples(scene, hit, t_h, o_a, d_a, weight, pixel_index)
         ok = np.sum(e_n * e_v, -1) > 0
         sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
         rows, e_n, e_v, e_w = rows[ok], e_n[ok], e_v[ok], e_w[ok]
-        order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w)
+        det = lighting.detail or Detail()
+        order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
         rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
-        e_cos, e_nw = node_geometry()
+        e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
     else:
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))

@@ -274,9 +274,7 @@ def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
         else jnp.asarray(a)  # noqa: E731
     sphere = (jnp.asarray(scene.sphere.center, dtype=dtype),
               jnp.asarray(scene.sphere.radius, dtype=dtype))
-    env_color = jnp.asarray(geo.env_color)  # float32 (``envlight.sky_table`` says why)
-    geo = jax.tree_util.tree_map(cast, geo._replace(env_color=None))._replace(env_color=env_color)
-    return geo, jax.tree_util.tree_map(cast, env64), sphere
+    return jax.tree_util.tree_map(cast, geo), jax.tree_util.tree_map(cast, env64), sphere
 
 
 @functools.lru_cache(maxsize=16)
