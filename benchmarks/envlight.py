@@ -60,22 +60,24 @@ def _lobes(mat: Material, truth):
 def _variant(label):
     """Module settings of a discretisation variant (restored afterwards)."""
     saved = (skystencil.Detail.__new__.__defaults__, skystencil.RING_EDGES,
-             geometry.SUN_CONE, geometry.SUN_EDGE)
+             geometry.SUN_CONE, geometry.SUN_EDGE, geometry.ENV_LIMB_COS)
     full = skystencil.RING_EDGES
     nodes, sub = skystencil.Detail().nodes, skystencil.Detail().sub
     change = {"default": {}, "nodes 49": {"nodes": 49}, "nodes 193": {"nodes": 193},
               "sub 1x1": {"sub": (1, 1)}, "sub 1x2": {"sub": (1, 2)}, "sub 4x8": {"sub": (4, 8)},
               "coarse rings": {"rings": np.concatenate([full[:-1:2], full[-1:]])},
-              "sun everywhere": {"cone": 4.0}}[label]
+              "sun everywhere": {"cone": 4.0}, "limb 0.2": {"limb": 0.2},
+              "limb 0.1": {"limb": 0.1}}[label]
     skystencil.Detail.__new__.__defaults__ = (change.get("nodes", nodes), change.get("sub", sub))
     skystencil.RING_EDGES = change.get("rings", full)
     geometry.SUN_CONE = change.get("cone", geometry.SUN_CONE)
+    geometry.ENV_LIMB_COS = change.get("limb", geometry.ENV_LIMB_COS)
     _clear()
     try:
         yield
     finally:
         (skystencil.Detail.__new__.__defaults__, skystencil.RING_EDGES, geometry.SUN_CONE,
-         geometry.SUN_EDGE) = saved
+         geometry.SUN_EDGE, geometry.ENV_LIMB_COS) = saved
         _clear()
 
 
@@ -129,7 +131,7 @@ def accuracy(a):
     mat, truth, _, _ = serialize.material_from_dict(spec["material"], a.case)
     truth = mat.full_params(truth)
     labels = ["default", "nodes 49", "nodes 193", "sub 1x1", "sub 1x2", "sub 4x8",
-              "coarse rings", "sun everywhere"]
+              "coarse rings", "sun everywhere", "limb 0.2", "limb 0.1"]
     if a.variants != "all":
         labels = [v for v in labels if v in a.variants.split(",")]
     print("| lobe | variant | rel RMSE | noise | mean | limb mean | render ms | jac ms "
