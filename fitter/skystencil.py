@@ -20,6 +20,7 @@ Beckmann m = 0.1 within 0.33 % and m = 0.25 within 0.3 % for theta_o up to
 from __future__ import annotations
 
 import functools
+import itertools
 from typing import NamedTuple
 
 import numpy as np
@@ -70,7 +71,7 @@ def _cells(sub, sub_phi=None):
     sub_phi = sub if sub_phi is None else sub_phi
     ct, ph, dct, dph, cell = [], [], [], [], []
     n = 0
-    for a0, a1 in zip(RING_EDGES[:-1], RING_EDGES[1:]):
+    for a0, a1 in itertools.pairwise(RING_EDGES):
         mid = 0.5 * (a0 + a1)
         nphi = 1 if a0 == 0 else int(np.clip(round(2 * np.pi * np.sin(mid) / (a1 - a0)),
                                              MIN_PHI, MAX_PHI))

@@ -6,10 +6,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fitter import envlight
-from fitter.cases import CASES
 from fitter.material import Material
 from fitter.render import cached_renderer, render
 from fitter.scene import Environment, Scene
