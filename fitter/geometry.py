@@ -49,9 +49,12 @@ class Geometry(NamedTuple):
         env_color: (R / B, B x 3, N), per sample and RGB channel and
             sky-stencil cell int L cos_i dw times the sample's weight in its
             pixel / cos_o (0 for unlit cells and padding).
-        env_cosines: ``Cosines`` (T, N) of the cells at the theta_o nodes and
-            env_node_weight (T, N) cos_o x [cell lit] there
+        env_cosines: ``Cosines`` (T, N, M) of M points per cell at the theta_o
+            nodes and env_node_weight (T, N, M) their weights
             (``envlight.node_geometry``): the lobe is evaluated on these only.
+        env_irradiance: (P, 3) the sky's irradiance E (int L cos_i dw) of each
+            pixel, with the sky stencil's own quadrature: a lobe of constant
+            shape g reflects g x E (Lambert's 1/pi), no per-step sum.
 
         sun: the environment's sun cells as directional lights on their own
             sample sets (``sun_samples``): a tuple of groups (index (Q,)
@@ -76,6 +79,7 @@ class Geometry(NamedTuple):
     env_color: np.ndarray
     env_cosines: Cosines
     env_node_weight: np.ndarray
+    env_irradiance: np.ndarray
     sun: tuple = ()
 
     def subset(self, rows: np.ndarray) -> "Geometry":
@@ -97,7 +101,7 @@ class Geometry(NamedTuple):
                      np.asarray(wt)[:, inv[np.asarray(i)] >= 0], np.asarray(col))
                     for i, cs, wt, col in self.sun)
         return self._replace(
-            sun=sun, env_index=e_rows, env_node=e_node, env_frac=e_frac, env_color=e_c,
+            sun=sun, env_irradiance=pick(self.env_irradiance), env_index=e_rows, env_node=e_node, env_frac=e_frac, env_color=e_c,
             pixel_index=pick(self.pixel_index), hit=pick(self.hit),
             position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
             cosines=Cosines(*(per_light(a) for a in self.cosines)),
@@ -298,7 +302,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
     cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, stand_in)))
     light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
     if lighting is not None:
-        from .envlight import Detail, node_geometry, sky_table
+        from .envlight import Detail, node_geometry, sky_sum, sky_table
 
         t_h = np.where(hit, t.reshape(h * w, k2)[pixel_index], 0.0)
         rows, e_n, e_v, e_w = env_samples(scene, hit, t_h, o_a, d_a, weight, pixel_index)
@@ -309,10 +313,15 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
         order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
         rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
         e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
+        irr = np.asarray(sky_sum(e_nw.sum(-1), node, frac, e_c))
+        e_irr = np.zeros((pixel_index.size, 3))
+        np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])
     else:
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))
         e_cos = Cosines(*(np.zeros((0, 0)),) * 6)
+        e_irr = np.zeros((pixel_index.size, 3))
         sun = ()
     return Geometry(pixel_index, hit, weight, pos, normal, d_a, cos, light_weight, color,
-                    background, background_image, rows, node, frac, e_c, e_cos, e_nw, sun)
+                    background, background_image, rows, node, frac, e_c, e_cos, e_nw, e_irr,
+                    sun)

@@ -145,6 +145,22 @@ def _brdf_unit(lobe, p, opts, geo: Geometry, lights=None):
                                 value_and_jac=unit_and_jac if lobe.shape_grad else None)
 
 
+def _constant_shape(lobe, opts):
+    """The shape of a parameter-free lobe if it is the same at 16 random direction
+    pairs (Lambert's 1/pi), else None. Evaluated at trace time on concrete arrays."""
+    rng = np.random.default_rng(0)
+    n = np.array([0.0, 0.0, 1.0])
+    wi, wo = (v / np.linalg.norm(v, axis=-1, keepdims=True)
+              for v in (rng.normal(size=(2, 16, 3)) * [1, 1, 0] + [0, 0, 1.5]))
+    from .bsdf.base import cosines
+
+    with jax.ensure_compile_time_eval():
+        g = np.asarray(lobe.shape({}, opts, cosines(np.broadcast_to(n, wi.shape), wi, wo)))
+    if g.shape == (16,) and np.all(g == g[0]) and np.isfinite(g[0]):
+        return float(g[0])
+    return None
+
+
 def _env_unit(lobe, p, opts, geo: Geometry):
     """Sum over the sky stencil of shape * (L cos dw) per pixel: (P, 3).
 
@@ -169,6 +185,9 @@ def _env_unit(lobe, p, opts, geo: Geometry):
 
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
     args = (geo.env_cosines, geo.env_node_weight, geo.env_node, geo.env_frac, geo.env_color)
+    const = _constant_shape(lobe, opts) if theta is None else None
+    if const is not None:  # e.g. Lambert: g x the sky's irradiance, tabulated per scene
+        return const * geo.env_irradiance
     if theta is None:
         per_sample = unit(None, *args)
     else:

@@ -104,3 +104,19 @@ def test_values_and_gradients_are_finite_for_sharp_lobes_under_a_tiny_sun(sun_pr
 
 # The shipped env_* Mitsuba cases are recovered by tests/test_mitsuba_recovery.py
 # (every case of fitter.cases), with the measured gaps stated there.
+
+
+def test_lambert_shortcut_equals_the_stencil_sum(sun_probe, monkeypatch):
+    # Lambert's sky term is 1/pi x the tabulated irradiance (no per-step sum); it must
+    # equal the general path (the lobe summed over the stencil cells), which it skips.
+    import importlib
+
+    render_mod = importlib.import_module("fitter.render")
+    scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe))
+    params = {"lambert.rho_d": [0.5, 0.6, 0.7]}
+    fast = np.asarray(render(params, scene))
+    monkeypatch.setattr(render_mod, "_constant_shape", lambda lobe, opts: None)
+    jax.clear_caches()  # retrace render_active with the general path
+    slow = np.asarray(render(params, scene))
+    assert np.abs(slow).max() > 0
+    np.testing.assert_allclose(fast, slow, rtol=1e-12, atol=1e-14)
