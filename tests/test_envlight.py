@@ -120,3 +120,26 @@ def test_lambert_shortcut_equals_the_stencil_sum(sun_probe, monkeypatch):
     slow = np.asarray(render(params, scene))
     assert np.abs(slow).max() > 0
     np.testing.assert_allclose(fast, slow, rtol=1e-12, atol=1e-14)
+
+
+def test_a_finer_discretisation_is_a_knob_and_changes_little(sun_probe):
+    # envlight.Detail is the public knob of the sky term's quadrature (theta_o nodes,
+    # lobe points per cell): a finer one moves a Torrance-Sparrow m = 0.1 render by well
+    # under the stencil's measured error against Mitsuba (0.6 % RMSE), yet moves it.
+    from fitter.geometry import build_geometry
+    from fitter.render import render_active
+
+    scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe))
+    mat = Material.from_params({"torrance_sparrow.m": 0.1, "torrance_sparrow.eta": 1.5,
+                                "torrance_sparrow.geometry": "smith"})
+    r = cached_renderer(scene, mat, jnp.dtype(jnp.float64), None)
+    env = jax.tree_util.tree_map(np.asarray, r.env)
+    out = []
+    for det in (envlight.Detail(), envlight.Detail.finer()):
+        lighting = envlight.env_lights("envmap", env.image, env.constant, detail=det)
+        geo = jax.tree_util.tree_map(jnp.asarray, build_geometry(scene, "envmap", env, lighting))
+        out.append(np.asarray(render_active(r.params({}), geo, r.env, r.sphere, material=mat,
+                                            env_type="envmap")))
+    full = np.asarray(r.geometry.hit).all(1)
+    rel = np.abs(out[1] / out[0] - 1)[full]
+    assert 0 < rel.mean() < 2e-3 and rel.max() < 2e-2, (rel.mean(), rel.max())
