@@ -18,6 +18,7 @@ directional lights, the rest a per-sample stencil of cells
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from typing import Any, Mapping
@@ -32,7 +33,7 @@ from .bsdf.base import Cosines, SurfaceHit
 from .environment import EnvData, load_environment, lookup
 from .geometry import Geometry, build_geometry
 from .material import Material, MaterialError, lobe_params
-from .scene import Scene, SceneError
+from .scene import Scene, SceneError, resolve_path
 
 
 def complete_params(material: Material, params: Mapping[str, Any], dtype=jnp.float64):
@@ -249,8 +250,9 @@ class Renderer:
     def __init__(self, scene: Scene, material: Material, dtype=jnp.float64, base_dir=None):
         self.scene, self.material, self.dtype = scene, material, dtype
         self.env_type = scene.environment.type
+        key_scene, key_dir = _prepare_key(scene, os.path.abspath(base_dir) if base_dir else None)
         self.geometry, self.env, self.sphere = _prepare(
-            scene, jnp.dtype(dtype), os.path.abspath(base_dir) if base_dir else None,
+            key_scene, jnp.dtype(dtype), key_dir,
             env_light=any(lb.kind == "brdf" for lb in material.lobe_objects))
         self.pixel_index = np.asarray(self.geometry.pixel_index)
 
@@ -272,6 +274,16 @@ class Renderer:
         s = self.scene
         img = self.geometry.background_image.at[self.geometry.pixel_index].set(vals)
         return img.reshape(s.height, s.width, 3)
+
+
+def _prepare_key(scene: Scene, base_dir):
+    """(scene, base_dir) with an envmap's path made absolute, so that cases in different
+    folders sharing one map and scene share the prepared geometry (its sky tabulation)."""
+    env = scene.environment
+    if env.type != "envmap" or not env.file or base_dir is None:
+        return scene, base_dir
+    path = resolve_path(env.file, base_dir)
+    return scene.replace(environment=dataclasses.replace(env, file=path)), None
 
 
 @functools.lru_cache(maxsize=8)
