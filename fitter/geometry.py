@@ -83,25 +83,23 @@ class Geometry(NamedTuple):
     sun: tuple = ()
 
     def subset(self, rows: np.ndarray) -> "Geometry":
-        """The geometry of the active pixels ``rows`` only (NumPy arrays)."""
+        """The geometry of the active pixels ``rows`` only (NumPy arrays; the env
+        samples' blocks are shared, not copied)."""
         per_light = lambda a: np.asarray(a)[:, rows]  # noqa: E731
         pick = lambda a: np.asarray(a)[rows]  # noqa: E731
         inv = np.full(np.asarray(self.hit).shape[0], -1)
         inv[rows] = np.arange(len(rows))
+        # The env samples keep their blocks (c is not copied, 0.5 GB at 128^2): a sample
+        # of a dropped pixel points past the last row, where the renderer's scatter drops it.
         idx = np.asarray(self.env_index)
         env_rows = np.where(idx >= 0, inv[np.maximum(idx, 0)], -1)
-        keep = env_rows >= 0
-        c = np.asarray(self.env_color)
-        c = c.reshape(keep.size, 3, -1) if c.size else np.zeros((0, 3, 0))
-        node = np.repeat(np.asarray(self.env_node), c.shape[0] // max(len(self.env_node), 1))
-        e_rows, e_node, e_frac, e_c = _blocked(env_rows[keep], node[keep],
-                                               np.asarray(self.env_frac)[keep], c[keep])
+        env_rows = np.where((idx >= 0) & (env_rows < 0), len(rows), env_rows)
         sun = tuple((inv[np.asarray(i)][inv[np.asarray(i)] >= 0],
                      Cosines(*(np.asarray(a)[:, inv[np.asarray(i)] >= 0] for a in cs)),
                      np.asarray(wt)[:, inv[np.asarray(i)] >= 0], np.asarray(col))
                     for i, cs, wt, col in self.sun)
         return self._replace(
-            sun=sun, env_irradiance=pick(self.env_irradiance), env_index=e_rows, env_node=e_node, env_frac=e_frac, env_color=e_c,
+            sun=sun, env_irradiance=pick(self.env_irradiance), env_index=env_rows,
             pixel_index=pick(self.pixel_index), hit=pick(self.hit),
             position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
             cosines=Cosines(*(per_light(a) for a in self.cosines)),
@@ -241,20 +239,17 @@ def sun_samples(lighting, hit, normal, view, weight, e_rows, e_n, e_v, e_w):
                        lighting.sun_irradiance.sum(0, keepdims=True)))
 
 
-def _blocked(rows, node, frac, c):
-    """Env samples in ``envlight.blocks`` order: (rows (R,), -1 for padding; block node
-    (nb,); frac (R,); c (nb, B x 3, N)) from per-sample rows, node, frac, c (S, 3, N)."""
-    from .envlight import blocks
-
-    order, bnode = blocks(node)
-    pad = order < 0
-    pick = np.where(pad, 0, order)
-    if not order.size:
-        return np.zeros(0, np.int64), bnode, np.zeros(0), np.zeros((0, 0, 0))
-    c = c[pick]
-    c[pad] = 0.0
-    return (np.where(pad, -1, rows[pick]), bnode, np.where(pad, 0.0, frac[pick]),
-            c.reshape(bnode.size, -1, c.shape[-1]))
+def _sky_irradiance(w, block_node, frac, c):
+    """Per env sample (R, 3): sum over cells of the node-interpolated w (T, N) times c
+    (nb, B x 3, N) -- ``envlight.sky_sum`` for one column, in NumPy (batched matmul,
+    no copy of c)."""
+    nb, rows, _ = c.shape
+    if not nb:
+        return np.zeros((0, 3))
+    h = np.stack([w[block_node], w[block_node + 1]], -1)  # (nb, N, 2)
+    out = np.matmul(c, h).reshape(nb, rows // 3, 3, 2)
+    f = frac.reshape(nb, rows // 3, 1)
+    return (out[..., 0] + (out[..., 1] - out[..., 0]) * f).reshape(-1, 3)
 
 
 def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> Geometry:
@@ -302,7 +297,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
     cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, stand_in)))
     light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
     if lighting is not None:
-        from .envlight import Detail, node_geometry, sky_sum, sky_table
+        from .envlight import Detail, node_geometry, sky_table
 
         t_h = np.where(hit, t.reshape(h * w, k2)[pixel_index], 0.0)
         rows, e_n, e_v, e_w = env_samples(scene, hit, t_h, o_a, d_a, weight, pixel_index)
@@ -313,7 +308,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
         order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
         rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
         e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
-        irr = np.asarray(sky_sum(e_nw.sum(-1), node, frac, e_c))
+        irr = _sky_irradiance(e_nw.sum(-1), node, frac, e_c)
         e_irr = np.zeros((pixel_index.size, 3))
         np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])
     else:

@@ -195,7 +195,8 @@ def _env_unit(lobe, p, opts, geo: Geometry):
         per_sample = _with_local_jacobian(
             unit, theta, *args, value_and_jac=unit_and_jac if lobe.shape_grad else None)
     out = jnp.zeros((geo.background.shape[0], 3), per_sample.dtype)
-    return out.at[geo.env_index].add(per_sample)  # env samples -> their pixels
+    # env samples -> their pixels; a sample of a pixel not fitted points past the end
+    return out.at[geo.env_index].add(per_sample, mode="drop")
 
 
 def _specular(lobe, p, opts, geo: Geometry, env: EnvData, sphere, env_type):

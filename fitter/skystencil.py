@@ -302,7 +302,7 @@ def _table_fn():
                + bil(flat, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
         lit = (q > 0) & (jnp.sum(d * nrm[:, None], -1) > 0)
         c = jnp.where(lit[..., None], rad * (q * wt[:, None] / co[:, None])[..., None], 0.0)
-        return jnp.swapaxes(c, 1, 2)  # (C, 3, N)
+        return jnp.swapaxes(c, 1, 2).astype(jnp.float64)  # (C, 3, N), float64 sums
 
     return jax.jit(fn)
 
@@ -350,7 +350,7 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
         else jnp.asarray(a)  # noqa: E731
     consts = [flt(a) for a in (q_tab, cen_tab, flat, lh, lw, loff, lo, fl)]
     r = order.size
-    c = np.zeros((r, 3, size_tab.shape[1]))
+    c = np.empty((r, 3, size_tab.shape[1]))  # every row is written below
     step = min(chunk, r) if r else 1
     extra = (-r) % step  # every chunk the same shape: one compilation
     nrm = np.concatenate([nrm, np.tile([[0.0, 0.0, 1.0]], (extra, 1))])
