@@ -239,19 +239,6 @@ def sun_samples(lighting, hit, normal, view, weight, e_rows, e_n, e_v, e_w):
                        lighting.sun_irradiance.sum(0, keepdims=True)))
 
 
-def _sky_irradiance(w, block_node, frac, c):
-    """Per env sample (R, 3): sum over cells of the node-interpolated w (T, N) times c
-    (nb, B x 3, N) -- ``envlight.sky_sum`` for one column, in NumPy (batched matmul,
-    no copy of c)."""
-    nb, rows, _ = c.shape
-    if not nb:
-        return np.zeros((0, 3))
-    h = np.stack([w[block_node], w[block_node + 1]], -1)  # (nb, N, 2)
-    out = np.matmul(c, h).reshape(nb, rows // 3, 3, 2)
-    f = frac.reshape(nb, rows // 3, 1)
-    return (out[..., 0] + (out[..., 1] - out[..., 0]) * f).reshape(-1, 3)
-
-
 def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> Geometry:
     """Trace the camera rays against the sphere and tabulate the lights.
 
@@ -297,7 +284,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
     cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, stand_in)))
     light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
     if lighting is not None:
-        from .envlight import Detail, node_geometry, sky_table
+        from .envlight import Detail, node_geometry, sky_sum, sky_table
 
         t_h = np.where(hit, t.reshape(h * w, k2)[pixel_index], 0.0)
         rows, e_n, e_v, e_w = env_samples(scene, hit, t_h, o_a, d_a, weight, pixel_index)
@@ -308,7 +295,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
         order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
         rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
         e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
-        irr = _sky_irradiance(e_nw.sum(-1), node, frac, e_c)
+        irr = np.asarray(sky_sum(jnp.asarray(e_nw.sum(-1)), node, frac, e_c))
         e_irr = np.zeros((pixel_index.size, 3))
         np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])
     else:

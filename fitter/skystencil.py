@@ -304,7 +304,23 @@ def _table_fn():
         c = jnp.where(lit[..., None], rad * (q * wt[:, None] / co[:, None])[..., None], 0.0)
         return jnp.swapaxes(c, 1, 2).astype(jnp.float64)  # (C, 3, N), float64 sums
 
-    return jax.jit(fn)
+    return fn
+
+
+@functools.cache
+def _table_all_fn():
+    """Jitted ``_table_fn`` over chunks (n, step, ...) -> (n x step / B, rows, N) float64."""
+    import jax
+
+    def run(nrm, wo, wt, *consts, rows):
+        out = jax.lax.map(lambda x: _table_fn()(*x, *consts), (nrm, wo, wt))
+        return out.reshape((-1, rows, out.shape[-1]))
+
+    return jax.jit(run, static_argnames="rows")
+
+
+def _table_all(*args, rows):
+    return _table_all_fn()(*args, rows=rows)
 
 
 def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
@@ -339,25 +355,24 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     weight = np.ones(normal.shape[0]) if weight is None else np.asarray(weight, np.float64)
     node, fr = _node_of(np.arccos(np.clip(np.sum(normal * view, -1), 0.0, 1.0)), nodes)
     order, bnode = blocks(node)
+    n = size_tab.shape[1]
+    if not order.size:
+        return order, bnode, np.zeros(0), np.zeros((0, 3 * BLOCK, n))
+    step = min(chunk, order.size)
+    extra = (-order.size) % step  # whole padding blocks: every chunk the same shape
+    order = np.concatenate([order, np.full(extra, -1)])
+    bnode = np.concatenate([bnode, np.zeros(extra // BLOCK, np.int32)])
     pad = order < 0
     pick = np.where(pad, 0, order)
-    nrm = np.where(pad[:, None], [0.0, 0.0, 1.0], normal[pick] if pick.size else np.zeros((0, 3)))
-    wo = np.where(pad[:, None], [0.0, 0.0, 1.0], view[pick] if pick.size else np.zeros((0, 3)))
-    wt = np.where(pad, 0.0, weight[pick] if pick.size else 0.0)
-    frac = np.where(pad, 0.0, fr[pick] if pick.size else 0.0)
-    fn = _table_fn()
+    nrm = np.where(pad[:, None], [0.0, 0.0, 1.0], normal[pick])
+    wo = np.where(pad[:, None], [0.0, 0.0, 1.0], view[pick])
+    wt = np.where(pad, 0.0, weight[pick])
+    frac = np.where(pad, 0.0, fr[pick])
     flt = lambda a: jnp.asarray(a, dtype) if np.asarray(a).dtype.kind == "f" \
         else jnp.asarray(a)  # noqa: E731
     consts = [flt(a) for a in (q_tab, cen_tab, flat, lh, lw, loff, lo, fl)]
-    r = order.size
-    c = np.empty((r, 3, size_tab.shape[1]))  # every row is written below
-    step = min(chunk, r) if r else 1
-    extra = (-r) % step  # every chunk the same shape: one compilation
-    nrm = np.concatenate([nrm, np.tile([[0.0, 0.0, 1.0]], (extra, 1))])
-    wo = np.concatenate([wo, np.tile([[0.0, 0.0, 1.0]], (extra, 1))])
-    wt = np.concatenate([wt, np.zeros(extra)])
-    for i in range(0, r, step):
-        k = min(step, r - i)
-        c[i:i + k] = np.asarray(fn(*(flt(x[i:i + step]) for x in (nrm, wo, wt)),
-                                   *consts))[:k]
-    return order, bnode, frac, c.reshape(bnode.size, -1, c.shape[-1])
+    # One jitted map over the chunks writing straight into the (nb, B x 3, N) float64
+    # table: no host copy of it (a fresh 0.5 GB costs seconds of page faults here).
+    c = _table_all(*(flt(x.reshape((-1, step) + x.shape[1:])) for x in (nrm, wo, wt)),
+                   *consts, rows=3 * BLOCK)
+    return order, bnode, frac, c
