@@ -41,7 +41,8 @@ class Geometry(NamedTuple):
         background_image: (H*W, 3) the image with no sphere.
         env_index: (R,) int, active-pixel row of each env sample (pixel
             centres inside the sphere, hitting sub-pixel samples on its
-            silhouette and limb; ``fitter.envlight``), -1 for padding; (0,)
+            silhouette and limb; ``fitter.envlight``), -1 for padding, past
+            the last row for a pixel a ``subset`` dropped; (0,)
             without environment light. Samples come in blocks of
             ``envlight.BLOCK`` sharing one theta_o node (``envlight.blocks``).
         env_node: (R / B,) int, each block's theta_o node; env_frac (R,) the

@@ -258,8 +258,8 @@ def _flat_levels(sky):
 
 @functools.cache
 def _table_fn():
-    """The jitted per-chunk tabulation of ``sky_table`` (JAX, the inputs' dtype)."""
-    import jax
+    """The per-chunk tabulation of ``sky_table`` (JAX, the inputs' dtype; jitted by
+    ``_table_all_fn``)."""
     import jax.numpy as jnp
 
     def bil(flat, h, w, off, u, v):  # Mitsuba's bilinear lookup, per cell's level
