@@ -1,52 +1,224 @@
-"""Environment light on opaque lobes: model error vs Mitsuba, and cost, per discretisation.
+"""Environment light on opaque lobes: model error vs Mitsuba per discretisation, and cost.
 
-Usage: ``.venv/bin/python benchmarks/envlight.py [--spp 4096] [--case env_plastic]``.
+Usage: ``.venv/bin/python benchmarks/envlight.py [--spp 4096] [--case env_plastic]
+[--variants all|default,...] [--no-fit]``.
 
-For the shipped HDR probe (``data_synthetic/probe.exr``) and a case's scene,
-renders each lobe of the case alone with Mitsuba (path, MIS, max_depth 2) at
-``--spp`` (two seeds: the noise floor) and with the model under several
-discretisations of ``fitter.envlight`` (ring density of the sky stencil, sun
-cell size), printing the interior relative RMSE and mean relative error, the
-number of stencil cells, tabulation time and geometry memory. Then times the
-compiled and first fit of the case with the defaults.
+1. Accuracy. For the shipped HDR probe and a case's scene, renders each lobe of
+   the case alone with Mitsuba (path, MIS, max_depth 2) at ``--spp`` with two
+   seeds (their difference is the noise floor; cached under
+   ``benchmarks/results/tmp/``) and with the model under several
+   discretisations of the sky term (``envlight.Detail``: theta_o nodes, lobe
+   points per cell; the stencil's ring density; the sun's sample sets),
+   printing over the pixels wholly on the sphere the relative RMSE, the mean
+   relative error, the mean relative error of the limb pixels (cos_o < 0.35
+   at the centre), the per-step render and Jacobian time of that lobe alone
+   and the geometry's memory.
+2. Cost of the case's fit with the defaults, each in a fresh process: the first
+   fit (tabulation + compilation + solve; no compilation cache) and the compiled
+   fit (the same fit again in that process), with per-step render and Jacobian
+   time of the whole material and peak RSS; the same for the case's material
+   under two point lights (the ``plastic`` scene) as the baseline of the same run.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import os
+import subprocess
 import sys
 import time
 
-import jax.numpy as jnp
 import numpy as np
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir)
 sys.path.insert(0, ROOT)
 
-from fitter import envlight, mitsuba, serialize  # noqa: E402
-from fitter.cases import CASES  # noqa: E402
-from fitter.material import Material  # noqa: E402
 import importlib  # noqa: E402
 
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+from fitter import geometry, mitsuba, serialize, skystencil  # noqa: E402
+from fitter.cases import CASES  # noqa: E402
+from fitter.material import Material  # noqa: E402
+
 R = importlib.import_module("fitter.render")
+CACHE = os.path.join(ROOT, "benchmarks", "results", "tmp")
 
 
 def _lobes(mat: Material, truth):
     for lobe in mat.lobe_objects:
         sub = {k: v for k, v in truth.items() if k.startswith(lobe.name + ".")}
-        opts = {k: v for k, v in mat.options_of(lobe.name).items()}
+        opts = dict(mat.options_of(lobe.name))
         yield lobe.name, Material.from_params({**sub, **{f"{lobe.name}.{k}": v
                                                          for k, v in opts.items()}}), sub
 
 
-_DEFAULT = (envlight.RING_EDGES, envlight.SUN_CELL)
+@contextlib.contextmanager
+def _variant(label):
+    """Module settings of a discretisation variant (restored afterwards)."""
+    saved = (skystencil.Detail.__new__.__defaults__, skystencil.RING_EDGES,
+             geometry.SUN_CONE, geometry.SUN_EDGE, geometry.ENV_LIMB_COS)
+    full = skystencil.RING_EDGES
+    nodes, sub = skystencil.Detail().nodes, skystencil.Detail().sub
+    change = {"default": {}, "nodes 49": {"nodes": 49}, "nodes 193": {"nodes": 193},
+              "sub 1x1": {"sub": (1, 1)}, "sub 1x2": {"sub": (1, 2)}, "sub 4x8": {"sub": (4, 8)},
+              "coarse rings": {"rings": np.concatenate([full[:-1:2], full[-1:]])},
+              "sun everywhere": {"cone": 4.0}, "limb 0.2": {"limb": 0.2},
+              "limb 0.1": {"limb": 0.1}}[label]
+    skystencil.Detail.__new__.__defaults__ = (change.get("nodes", nodes), change.get("sub", sub))
+    skystencil.RING_EDGES = change.get("rings", full)
+    geometry.SUN_CONE = change.get("cone", geometry.SUN_CONE)
+    geometry.ENV_LIMB_COS = change.get("limb", geometry.ENV_LIMB_COS)
+    _clear()
+    try:
+        yield
+    finally:
+        (skystencil.Detail.__new__.__defaults__, skystencil.RING_EDGES, geometry.SUN_CONE,
+         geometry.SUN_EDGE, geometry.ENV_LIMB_COS) = saved
+        _clear()
 
 
-def _variants():
-    full, cell = _DEFAULT
-    half = np.concatenate([full[:-1:2], full[-1:]])
-    return {"default": (full, cell), "coarse rings": (half, cell), "sun cells halved": (full, 2 * cell)}
+def _clear():
+    skystencil._tables.cache_clear()
+    skystencil.node_geometry.cache_clear()
+    R._prepare.cache_clear()
+    R.cached_renderer.cache_clear()
+
+
+def _reference(scene, m, p, spp, seed, tag):
+    os.makedirs(CACHE, exist_ok=True)
+    path = os.path.join(CACHE, f"envlight_{tag}_{spp}_{seed}.npy")
+    if os.path.exists(path):
+        return np.load(path)
+    img = np.asarray(mitsuba.render(scene, m, m.full_params(p), spp=spp, seed=seed))
+    np.save(path, img)
+    return img
+
+
+def _ms(fn, *args, repeat=3):
+    fj = jax.jit(fn)
+    jax.block_until_ready(fj(*args))
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fj(*args))
+        best = min(best, time.perf_counter() - t0)
+    return 1e3 * best
+
+
+def step_times(r, params, free):
+    """(render ms, Jacobian ms) of ``render_active`` on r's geometry; Jacobian: forward
+    mode in the ``free`` parameters (as the fit's)."""
+    p = r.params(params)
+
+    def f(p, geo):
+        return R.render_active(p, geo, r.env, r.sphere, material=r.material, env_type=r.env_type)
+
+    def jac(p, geo):
+        sub = {k: p[k] for k in free}
+        return jax.jacfwd(lambda s: f({**p, **s}, geo))(sub)
+
+    return _ms(f, p, r.geometry), _ms(jac, p, r.geometry)
+
+
+def accuracy(a):
+    spec = CASES[a.case]
+    base = os.path.join(ROOT, "data_synthetic", a.case)
+    scene = serialize.scene_from_dict(spec["scene"], a.case, base_dir=base)
+    mat, truth, _, _ = serialize.material_from_dict(spec["material"], a.case)
+    truth = mat.full_params(truth)
+    labels = ["default", "nodes 49", "nodes 193", "sub 1x1", "sub 1x2", "sub 4x8",
+              "coarse rings", "sun everywhere", "limb 0.2", "limb 0.1"]
+    if a.variants != "all":
+        labels = [v for v in labels if v in a.variants.split(",")]
+    print("| lobe | variant | rel RMSE | noise | mean | limb mean | render ms | jac ms "
+          "| prepare s | geometry MiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name, m, p in _lobes(mat, truth):
+        ref = _reference(scene, m, p, a.spp, 1, f"{a.case}_{name}")
+        ref2 = _reference(scene, m, p, a.spp, 2, f"{a.case}_{name}")
+        for label in labels:
+            with _variant(label):
+                t0 = time.perf_counter()
+                r = R.cached_renderer(scene, m, jnp.dtype(jnp.float64), None)
+                t_prep = time.perf_counter() - t0
+                img = np.asarray(r.image(dict(p)))
+                free = [k for k in r.params(dict(p)) if k.split(".", 1)[1] != "rho_s"]
+                t_r, t_j = step_times(r, dict(p), free)
+            geo = r.geometry
+            hit = np.asarray(geo.hit)
+            full = np.zeros(scene.width * scene.height, bool)
+            full[np.asarray(r.pixel_index)[hit.all(1)]] = True
+            cos_c = -np.sum(np.asarray(geo.normal) * np.asarray(geo.ray_dir), -1).min(1)
+            limb = np.zeros_like(full)
+            limb[np.asarray(r.pixel_index)[hit.all(1) & (cos_c < 0.35)]] = True
+            full, limb = full.reshape(scene.height, -1), limb.reshape(scene.height, -1)
+            d, n = (img - ref)[full], (ref - ref2)[full]
+            scale = ref[full].mean()
+            rel_limb = ((img - ref)[limb] / np.maximum(ref[limb], 1e-9)).mean()
+            mem = sum(np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(geo))
+            print(f"| {name} | {label} | {np.sqrt(np.mean(d**2)) / scale:.4f} | "
+                  f"{np.sqrt(np.mean(n**2) / 2) / scale:.4f} | {d.mean() / scale:+.4f} | "
+                  f"{rel_limb:+.4f} | {t_r:.1f} | {t_j:.1f} | {t_prep:.2f} | "
+                  f"{mem / 2**20:.0f} |", flush=True)
+
+
+_FIT = r"""
+import json, os, resource, sys, time
+t0 = time.perf_counter()
+import numpy as np, fitter
+from fitter import serialize
+from fitter.cases import CASES
+from fitter.imageio import read_image
+sys.path.insert(0, os.path.join(%(root)r, "benchmarks"))
+import envlight as B
+case, scene_of = %(case)r, %(scene_of)r
+spec = CASES[case]
+base = os.path.join(%(root)r, "data_synthetic", case)
+scene = serialize.scene_from_dict(CASES[scene_of]["scene"], case, base_dir=base)
+mat, truth, _, fixed = serialize.material_from_dict(spec["material"], case)
+target = np.asarray(fitter.render(mat.full_params(truth), scene, mat, base_dir=base)) \
+    if scene_of != case else read_image(os.path.join(base, "target.exr"))
+t1 = time.perf_counter()
+res = fitter.fit(target, scene, mat, fixed=fixed or None, base_dir=base)
+t_first = time.perf_counter() - t1
+t1 = time.perf_counter()
+res = fitter.fit(target, scene, mat, fixed=fixed or None, base_dir=base)
+t_again = time.perf_counter() - t1
+import importlib, jax.numpy as jnp
+R = importlib.import_module("fitter.render")
+r = R.cached_renderer(scene, mat, jnp.dtype(jnp.float64), base)
+t_r, t_j = B.step_times(r, mat.full_params(truth), list(res.free))
+print(json.dumps({"first": t_first, "again": t_again, "steps": res.iterations,
+                  "render_ms": t_r, "jac_ms": t_j, "status": res.status,
+                  "params": {k: np.asarray(v).tolist() for k, v in res.params.items()},
+                  "rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}))
+"""
+
+
+def cost(a):
+    env = dict(os.environ, FITTER_CACHE_DIR="", PYTHONPATH=ROOT)
+    print("\n| scene | first fit s | compiled fit s | steps | render ms | Jacobian ms | "
+          "peak RSS GB | status |")
+    print("|---|---|---|---|---|---|---|---|")
+    for scene_of in ("plastic", a.case):
+        code = _FIT % {"root": ROOT, "case": a.case, "scene_of": scene_of}
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                             text=True, check=False)
+        line = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+        if not line:
+            print(out.stderr[-2000:])
+            continue
+        d = json.loads(line[-1])
+        label = "point lights (baseline)" if scene_of == "plastic" else f"{a.case} (envmap)"
+        print(f"| {label} | {d['first']:.2f} | {d['again']:.2f} | {d['steps']} | "
+              f"{d['render_ms']:.1f} | {d['jac_ms']:.1f} | {d['rss_gb']:.2f} | {d['status']} |",
+              flush=True)
+        if scene_of == a.case:
+            print("fitted:", {k: np.round(v, 5).tolist() for k, v in d["params"].items()})
 
 
 def main():
@@ -54,39 +226,13 @@ def main():
     ap.add_argument("--spp", type=int, default=4096)
     ap.add_argument("--case", default="env_plastic")
     ap.add_argument("--variants", default="all", help="comma-separated labels, or all")
+    ap.add_argument("--no-fit", action="store_true")
+    ap.add_argument("--no-accuracy", action="store_true")
     a = ap.parse_args()
-    spec = CASES[a.case]
-    base = os.path.join(ROOT, "data_synthetic", a.case)
-    scene = serialize.scene_from_dict(spec["scene"], a.case, base_dir=base)
-    mat, truth, _, _ = serialize.material_from_dict(spec["material"], a.case)
-    truth = mat.full_params(truth)
-    for name, m, p in _lobes(mat, truth):
-        ref = np.asarray(mitsuba.render(scene, m, m.full_params(p), spp=a.spp, seed=1))
-        ref2 = np.asarray(mitsuba.render(scene, m, m.full_params(p), spp=a.spp, seed=2))
-        for label, (edges, cell) in _variants().items():
-            if a.variants != "all" and label not in a.variants.split(","):
-                continue
-            envlight.RING_EDGES, envlight.SUN_CELL = edges, cell
-            envlight._tables.cache_clear()
-            R._prepare.cache_clear()
-            R.cached_renderer.cache_clear()
-            t0 = time.perf_counter()
-            r = R.cached_renderer(scene, m, jnp.dtype(jnp.float64), None)
-            t_prep = time.perf_counter() - t0
-            img = np.asarray(r.image({k: v for k, v in p.items()}))
-            full = np.zeros(scene.width * scene.height, bool)
-            full[np.asarray(r.pixel_index)[np.asarray(r.geometry.hit).all(1)]] = True
-            full = full.reshape(scene.height, scene.width)
-            d, n = (img - ref)[full], (ref - ref2)[full]
-            scale = ref[full].mean()
-            mem = sum(np.asarray(x).nbytes for x in (r.geometry.env_color, *r.geometry.env_cosines,
-                                                      r.geometry.light_weight, *r.geometry.cosines))
-            print(f"{name:18s} {label:15s} cells {r.geometry.env_color.shape[1]:4d} "
-                  f"sun lights {r.geometry.light_color.shape[0]:3d}  rel RMSE {np.sqrt(np.mean(d**2)) / scale:.4f}"
-                  f" (noise {np.sqrt(np.mean(n**2) / 2) / scale:.4f})  mean {d.mean() / scale:+.4f}"
-                  f"  prepare {t_prep:.2f} s  geometry {mem / 2**20:.0f} MiB", flush=True)
-        envlight.RING_EDGES, envlight.SUN_CELL = _variants()["default"]
-        envlight._tables.cache_clear()
+    if not a.no_accuracy:
+        accuracy(a)
+    if not a.no_fit:
+        cost(a)
 
 
 if __name__ == "__main__":

@@ -13,36 +13,43 @@ radiance L is the bilinearly interpolated latitude-longitude map
   half-texel cells (``SUN_SUB`` x ``SUN_SUB`` sub-samples per texel) into
   directional lights -- irradiance = int L dw over the cell, direction its
   radiance-weighted centroid -- which the renderer treats exactly like the
-  scene's directional lights (every sub-pixel sample, every lobe).
+  scene's directional lights (on their own sample sets, every lobe).
 * **Sky stencil.** The rest (the map with the sun texels filled in) is
-  integrated per *env sample* over a fixed stencil of ``N`` cells: rings
-  about the sample's mirror direction r = reflect(wo, n), narrow near r
-  (``RING_EDGES``: 0.006 rad first ring, up to ``MAX_PHI`` sectors a ring;
-  ~690 cells), wide far away where only broad lobes reach. Against a
-  brute-force hemisphere quadrature (``tests/test_envlight_reference.py``):
-  Beckmann m = 0.1 within 0.7 % and m = 0.25 within 0.4 % for theta_o <= 84
-  degrees (m = 0.1: -3 % at 87, -17 % at 89), normalised Phong e = 300 0.2 %.
-  Per cell, ``STENCIL_SUB`` x ``STENCIL_SUB`` sub-cells look up a
-  solid-angle-prefiltered pyramid of the map at their own size, giving
-  c = int_cell L max(cos_i, 0) dw (RGB) and the direction of the cell's
-  cos-weighted luminance centroid (above the horizon by construction). A
-  lobe then contributes scale * sum_cells shape(w_cell, wo) * c: Lambert's is
-  exactly rho/pi x irradiance, every other lobe a quadrature whose error is
-  measured in ``benchmarks/envlight.py``.
+  integrated per *env sample* over a fixed stencil of ~690 cells about the
+  sample's mirror direction (``fitter.skystencil``, whose docstring gives the
+  scheme and its measured accuracy). Lambert's share is exactly rho/pi x the
+  irradiance; every other lobe's is a quadrature whose error against Mitsuba
+  ``benchmarks/envlight.py`` measures per discretisation (``Detail``).
 
 Env samples are the pixel centres of pixels wholly on the sphere and every
 hitting sub-pixel sample of silhouette pixels and of limb pixels
 (``geometry.ENV_LIMB_COS``), weighted by its quadrature weight: the sky term
-is smooth across the sphere but for the limb, while the sun's highlight
-(sharp) gets the scene's full supersampling through the sun lights.
+is smooth across the sphere but for the limb. The sun lights get every
+sub-pixel sample near the highlight and their horizon, one merged light at
+the env samples elsewhere (``geometry.sun_samples``).
 """
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import numpy as np
+
+from .skystencil import (  # noqa: F401
+    BLOCK,
+    LOBE_NODES,
+    LOBE_SUB,
+    MAX_PHI,
+    MIN_PHI,
+    N_THETA,
+    RING_EDGES,
+    Detail,
+    blocks,
+    node_angles,
+    node_geometry,
+    sky_sum,
+    sky_table,
+)
 
 #: A texel is part of the sun when its luminance exceeds this x the median.
 SUN_RATIO = 20.0
@@ -54,19 +61,6 @@ SUN_MAX_TEXELS = 64
 #: half-texel cells: 0.6 % (quarter-texel: 0.3 %, at 1.5x the fit time and memory).
 SUN_CELL = 2
 SUN_SUB = 8
-#: Ring edges (radians from the mirror direction) of the sky stencil.
-#: Below 0.3 rad twice as many rings as the first version (midpoints added): a midpoint
-#: rule in angle over a Gaussian-like lobe is -0.3 % (Phong e = 300) to +0.4 % (Beckmann
-#: m = 0.1) biased on the coarser rings, measured against a brute-force quadrature
-#: (``tests/test_envlight_reference.py``).
-RING_EDGES = np.array([0.0, 0.006, 0.012, 0.0195, 0.027, 0.036, 0.045, 0.055, 0.065, 0.0775, 0.09,
-                       0.105, 0.12, 0.1375, 0.155, 0.175, 0.195, 0.2175, 0.24, 0.265, 0.29, 0.35,
-                       0.42, 0.5, 0.6, 0.72, 0.86, 1.03, 1.25, 1.5, 1.8, 2.2, 2.65, np.pi])
-#: Azimuthal cells per ring: about square cells, between these bounds. A microfacet lobe at
-#: grazing view is a stripe in the plane of incidence only ~2 m cos(theta_o) wide across
-#: it: 16 sectors left Beckmann m = 0.1 -2 % / -4 % / -6 % low at theta_o = 70 / 80 / 84
-#: degrees (the "limb" error against Mitsuba); 24 sectors -0.2 / -0.6 / -0.5 %.
-MIN_PHI, MAX_PHI = 6, 24
 _LUM = np.array([0.2126, 0.7152, 0.0722])
 
 
@@ -81,7 +75,8 @@ class EnvLights(NamedTuple):
 
     sun_dir: np.ndarray
     sun_irradiance: np.ndarray
-    sky: "Pyramid"
+    sky: Pyramid
+    detail: Detail = None
 
 
 # ----------------------------------------------------------------- lat-long maps (NumPy)
@@ -111,7 +106,7 @@ def bilinear(img, u, v):
     x1i = (x0i + 1) % w
     y0i = y0.astype(np.int64) * w
     flat = img.reshape(-1, img.shape[-1])
-    take = lambda i: np.take(flat, i, axis=0)  # noqa: E731  (faster than 2-D fancy indexing)
+    take = lambda i: np.take(flat, i, axis=0)
     top = take(y0i + x0i) * (1 - wx) + take(y0i + x1i) * wx
     bot = take(y0i + w + x0i) * (1 - wx) + take(y0i + w + x1i) * wx
     return top * (1 - wy) + bot * wy
@@ -211,70 +206,19 @@ def split_sun(img: np.ndarray):
     return cen / np.linalg.norm(cen, axis=-1, keepdims=True), irr[keep], sky
 
 
-def env_lights(env_type: str, image: np.ndarray, constant: np.ndarray) -> EnvLights | None:
-    """The split environment, or None for a black one."""
+def env_lights(env_type: str, image: np.ndarray, constant: np.ndarray,
+               detail: Detail | None = None) -> EnvLights | None:
+    """The split environment, or None for a black one; ``detail``: the sky term's
+    discretisation (default ``Detail()``), which ``geometry.build_geometry`` uses."""
+    detail = detail or Detail()
     if env_type == "envmap":
         sun_dir, sun_irr, sky = split_sun(image)
-        return EnvLights(sun_dir, sun_irr, Pyramid(sky))
+        return EnvLights(sun_dir, sun_irr, Pyramid(sky), detail)
     rad = np.asarray(constant, dtype=np.float64)
     if env_type != "constant" or not np.any(rad > 0):
         return None
-    return EnvLights(np.zeros((0, 3)), np.zeros((0, 3)), Pyramid(np.broadcast_to(rad, (2, 4, 3))))
-
-
-# ---------------------------------------------------------------------- the sky stencil
-#: Cosine tables: angles between n and r (0 .. pi/2) at which Q and the centroids are tabulated.
-N_THETA = 129
-_FINE = 8  # sub-cells per cell side when tabulating
-
-
-def _cells(sub):
-    """Sub-cells of the stencil about +z in (cos alpha, phi, d cos, d phi, cell id) and the
-    number of cells: rings in alpha (``RING_EDGES``), each cut into azimuthal sectors."""
-    ct, ph, dct, dph, cell = [], [], [], [], []
-    n = 0
-    for a0, a1 in zip(RING_EDGES[:-1], RING_EDGES[1:]):
-        mid = 0.5 * (a0 + a1)
-        nphi = 1 if a0 == 0 else int(np.clip(round(2 * np.pi * np.sin(mid) / (a1 - a0)),
-                                             MIN_PHI, MAX_PHI))
-        ca = np.cos(np.linspace(a0, a1, sub + 1))
-        for j in range(nphi):
-            for sa in range(sub):
-                for sp in range(sub):
-                    ct.append(0.5 * (ca[sa] + ca[sa + 1]))  # equal-area midpoint in cos
-                    ph.append(2 * np.pi * (j + (sp + 0.5) / sub) / nphi - np.pi)
-                    dct.append(ca[sa] - ca[sa + 1])
-                    dph.append(2 * np.pi / nphi / sub)
-                    cell.append(n)
-            n += 1
-    return tuple(np.array(a) for a in (ct, ph, dct, dph, cell)) + (n,)
-
-
-def _tables():
-    """Per cell and angle theta_o between n and r: Q = int_cell max(n.w, 0) dw, the unit
-    direction of the cos-weighted centroid (local frame: r = +z, n in the xz plane) and
-    the cell's angular size sqrt(solid angle)."""
-    ct, ph, dct, dph, cell, n = _cells(_FINE)
-    st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
-    dw = dct * dph
-    th = np.linspace(0.0, np.pi / 2, N_THETA)
-    q = np.zeros((N_THETA, n))
-    cen = np.zeros((N_THETA, n, 3))
-    size = np.zeros((N_THETA, n))
-    d = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1)
-    for t in range(N_THETA):
-        w = np.maximum(d @ np.array([np.sin(th[t]), 0.0, np.cos(th[t])]), 0.0) * dw
-        q[t] = np.bincount(cell, w, n)
-        size[t] = np.sqrt(np.bincount(cell, dw, n))
-        for i in range(3):
-            cen[t, :, i] = np.bincount(cell, w * d[:, i], n)
-    nl = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)
-    norm = np.linalg.norm(cen, axis=-1, keepdims=True)
-    cen = np.where(norm > 0, cen / np.where(norm > 0, norm, 1.0), nl[:, None])
-    return q, cen, size
-
-
-_tables = functools.cache(_tables)  # built on first use (~0.1 s), not at import
+    return EnvLights(np.zeros((0, 3)), np.zeros((0, 3)), Pyramid(np.broadcast_to(rad, (2, 4, 3))),
+                     detail)
 
 
 def lit_by_environment(scene, material) -> bool:
@@ -304,53 +248,3 @@ def unlit(scene, material) -> str | None:
                 "envmap": "scene.environment.scale is zero"}[env.type]
     return (f"the opaque lobe(s) {opaque} get no light: {lights} and {env_text}; "
             "add a light or an environment")
-
-
-def _frame(r):
-    """Orthonormal (t, b) completing unit vectors r (..., 3)."""
-    a = np.where(np.abs(r[..., :1]) < 0.9, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]))
-    t = np.cross(a, r)
-    t /= np.linalg.norm(t, axis=-1, keepdims=True)
-    return t, np.cross(r, t)
-
-
-def sky_stencil(sky: Pyramid, normal, view, chunk: int = 2048):
-    """Per env sample: cell directions (S, N, 3) and c = int L max(cos_i, 0) dw (S, N, 3).
-
-    ``normal`` and ``view`` (S, 3): unit normal and unit direction to the camera
-    (n . view > 0). c = Q(theta_o) x the prefiltered radiance at the cell's
-    cos-weighted centroid, Q tabulated per cell (exact for a constant sky).
-    Cells that receive nothing get the normal as a harmless stand-in direction.
-    """
-    q_tab, cen_tab, size_tab = _tables()
-    s, n = normal.shape[0], size_tab.shape[1]
-    lev = np.clip(np.log2(size_tab[0] / sky.texel), 0, len(sky.levels) - 1)  # size: theta-free
-    out_dir = np.zeros((s, n, 3))
-    out_c = np.zeros((s, n, 3))
-    for lo in range(0, s, chunk):
-        nrm, wo = normal[lo:lo + chunk], view[lo:lo + chunk]
-        co = np.clip(np.sum(nrm * wo, -1), -1.0, 1.0)
-        r = 2.0 * co[:, None] * nrm - wo
-        t = nrm - co[:, None] * r
-        tn = np.linalg.norm(t, axis=-1, keepdims=True)
-        t0, _ = _frame(r)
-        t = np.where(tn > 1e-9, t / np.where(tn > 0, tn, 1.0), t0)
-        b = np.cross(r, t)
-        x = np.arccos(np.clip(co, 0.0, 1.0)) / (np.pi / 2) * (N_THETA - 1)
-        i0 = np.clip(np.floor(x).astype(np.int64), 0, N_THETA - 2)
-        f = (x - i0)[:, None]
-        q = q_tab[i0] * (1 - f) + q_tab[i0 + 1] * f  # (C, N)
-        cl = cen_tab[i0] * (1 - f[..., None]) + cen_tab[i0 + 1] * f[..., None]
-        d = cl[..., :1] * t[:, None] + cl[..., 1:2] * b[:, None] + cl[..., 2:] * r[:, None]
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        u, v = dir_to_uv(d)
-        rad = np.zeros(d.shape)
-        for k, img in enumerate(sky.levels):  # trilinear: cells sit at fixed levels
-            wk = np.clip(1.0 - np.abs(lev - k), 0.0, 1.0)
-            cols = np.nonzero(wk > 0)[0]
-            if cols.size:
-                rad[:, cols] += wk[cols, None] * bilinear(img, u[:, cols], v[:, cols])
-        lit = (q > 0) & (np.sum(d * nrm[:, None], -1) > 0)
-        out_dir[lo:lo + chunk] = np.where(lit[..., None], d, nrm[:, None])
-        out_c[lo:lo + chunk] = np.where(lit[..., None], rad * q[..., None], 0.0)
-    return out_dir, out_c

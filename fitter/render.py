@@ -18,6 +18,7 @@ directional lights, the rest a per-sample stencil of cells
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from typing import Any, Mapping
@@ -29,11 +30,11 @@ import numpy as np
 from . import checks
 from ._math import to_device
 from ._modules import make_callable
-from .bsdf.base import SurfaceHit
+from .bsdf.base import Cosines, SurfaceHit
 from .environment import EnvData, load_environment, lookup
 from .geometry import Geometry, build_geometry
 from .material import EXPOSURE_KEY, Material, MaterialError, lobe_params
-from .scene import Scene, SceneError
+from .scene import Scene, SceneError, resolve_path
 
 
 def complete_params(material: Material, params: Mapping[str, Any], dtype=jnp.float64):
@@ -119,8 +120,12 @@ def _columns(g, dg, q):
     return jnp.stack(cols)
 
 
-def _brdf_unit(lobe, p, opts, geo: Geometry):
-    """Sum over lights and samples of shape * weight * light colour: (P, 3)."""
+def _brdf_unit(lobe, p, opts, geo: Geometry, lights=None):
+    """Sum over lights and samples of shape * weight * light colour: (P, 3).
+
+    ``lights``: (cosines (L, Q), weight (L, Q), colour (L, 3)) of a sample list
+    (the sun's, ``Geometry.sun``) instead of the scene lights: gives (Q, 3).
+    """
 
     def light_sum(g, weight, color, rgb):  # g: ([T,] L, P, K[, 3]); rgb: colour axis
         return jnp.einsum("...lpkc,lpk,lc->...pc" if rgb else "...lpk,lpk,lc->...pc",
@@ -139,35 +144,65 @@ def _brdf_unit(lobe, p, opts, geo: Geometry):
 
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
     args = (geo.cosines, geo.light_weight, geo.light_color)
+    if lights is not None:  # a sample list: K = 1
+        args = (Cosines(*(a[..., None] for a in lights[0])), lights[1][..., None], lights[2])
     if theta is None:
         return unit(None, *args)
     return _with_local_jacobian(unit, theta, *args,
                                 value_and_jac=unit_and_jac if lobe.shape_grad else None)
 
 
+def _constant_shape(lobe, opts):
+    """The shape of a parameter-free lobe if it is the same at 16 random direction
+    pairs (Lambert's 1/pi), else None. Evaluated at trace time on concrete arrays."""
+    rng = np.random.default_rng(0)
+    n = np.array([0.0, 0.0, 1.0])
+    wi, wo = (v / np.linalg.norm(v, axis=-1, keepdims=True)
+              for v in (rng.normal(size=(2, 16, 3)) * [1, 1, 0] + [0, 0, 1.5]))
+    from .bsdf.base import cosines
+
+    with jax.ensure_compile_time_eval():
+        g = np.asarray(lobe.shape({}, opts, cosines(np.broadcast_to(n, wi.shape), wi, wo)))
+    if g.shape == (16,) and np.all(g == g[0]) and np.isfinite(g[0]):
+        return float(g[0])
+    return None
+
+
 def _env_unit(lobe, p, opts, geo: Geometry):
-    """Sum over the sky stencil of shape * (L cos dw) per pixel: (P, 3)."""
+    """Sum over the sky stencil of shape * (L cos dw) per pixel: (P, 3).
 
-    def unit(theta, cos, color):  # per env sample (S, 3)
-        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)
-        return jnp.einsum("snc,snc->sc" if g.ndim == color.ndim else "sn,snc->sc", g, color)
+    The lobe is evaluated once per theta_o node and cell (``envlight.node_geometry``),
+    then interpolated per env sample and summed against its cells (``envlight.sky_sum``).
+    """
+    from .envlight import sky_sum
 
-    def unit_and_jac(theta, cos, color):
+    def cell_mean(g, wnode):  # (..., T, N, M[, 3]) -> (..., T, N[, 3]), over a cell's points
+        rgb = g.ndim > wnode.ndim and g.shape[-1] == 3
+        return jnp.sum(g * wnode[..., None], -2) if rgb else jnp.sum(g * wnode, -1)
+
+    def unit(theta, cos, wnode, node, frac, color):
+        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (T, N, M[, 3])
+        return sky_sum(cell_mean(g, wnode), node, frac, color)
+
+    def unit_and_jac(theta, cos, wnode, node, frac, color):
         q = unflatten(theta)
         g, dg = lobe.shape_grad(q, opts, cos)
-        out = jnp.einsum("tsnc,snc->tsc" if g.ndim == color.ndim else "tsn,snc->tsc",
-                         _columns(g, dg, q), color)  # an RGB shape has a colour axis
+        out = sky_sum(cell_mean(_columns(g, dg, q), wnode), node, frac, color)  # (n + 1, S, 3)
         return out[0], jnp.moveaxis(out[1:], 0, -1)
 
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
-    args = (geo.env_cosines, geo.env_color)
+    args = (geo.env_cosines, geo.env_node_weight, geo.env_node, geo.env_frac, geo.env_color)
+    const = _constant_shape(lobe, opts) if theta is None else None
+    if const is not None:  # e.g. Lambert: g x the sky's irradiance, tabulated per scene
+        return const * geo.env_irradiance
     if theta is None:
         per_sample = unit(None, *args)
     else:
         per_sample = _with_local_jacobian(
             unit, theta, *args, value_and_jac=unit_and_jac if lobe.shape_grad else None)
     out = jnp.zeros((geo.background.shape[0], 3), per_sample.dtype)
-    return out.at[geo.env_index].add(per_sample)  # env samples -> their pixels
+    # env samples -> their pixels; a sample of a pixel not fitted points past the end
+    return out.at[geo.env_index].add(per_sample, mode="drop")
 
 
 def _specular(lobe, p, opts, geo: Geometry, env: EnvData, sphere, env_type):
@@ -214,6 +249,10 @@ def render_active(params, geo: Geometry, env: EnvData, sphere, *, material, env_
                 value = value + p[lobe.scale] * _brdf_unit(lobe, p, opts, geo)
             if geo.env_color.shape[0] and geo.env_color.shape[1]:
                 value = value + p[lobe.scale] * _env_unit(lobe, p, opts, geo)
+            for index, cos, weight, color in geo.sun:
+                if index.shape[0]:
+                    sun = _brdf_unit(lobe, p, opts, geo, (cos, weight, color))
+                    value = value + p[lobe.scale] * jnp.zeros_like(value).at[index].add(sun)
         else:
             value = value + _specular(lobe, p, opts, geo, env, sphere, env_type)
     if material.exposure:  # static: a material without it traces exactly as before
@@ -242,8 +281,9 @@ class Renderer:
     def __init__(self, scene: Scene, material: Material, dtype=jnp.float64, base_dir=None):
         self.scene, self.material, self.dtype = scene, material, dtype
         self.env_type = scene.environment.type
+        key_scene, key_dir = _prepare_key(scene, os.path.abspath(base_dir) if base_dir else None)
         self.geometry, self.env, self.sphere = _prepare(
-            scene, jnp.dtype(dtype), os.path.abspath(base_dir) if base_dir else None,
+            key_scene, jnp.dtype(dtype), key_dir,
             env_light=any(lb.kind == "brdf" for lb in material.lobe_objects))
         self.pixel_index = np.asarray(self.geometry.pixel_index)
 
@@ -268,6 +308,16 @@ class Renderer:
         img = exposed_background(self.material, full, self.geometry.background_image)
         img = img.at[self.geometry.pixel_index].set(vals)
         return img.reshape(s.height, s.width, 3)
+
+
+def _prepare_key(scene: Scene, base_dir):
+    """(scene, base_dir) with an envmap's path made absolute, so that cases in different
+    folders sharing one map and scene share the prepared geometry (its sky tabulation)."""
+    env = scene.environment
+    if env.type != "envmap" or not env.file or base_dir is None:
+        return scene, base_dir
+    path = resolve_path(env.file, base_dir)
+    return scene.replace(environment=dataclasses.replace(env, file=path)), None
 
 
 @functools.lru_cache(maxsize=8)

@@ -1,0 +1,378 @@
+"""The sky stencil: the environment's smooth part as a fixed set of cells per env sample.
+
+Material-independent, built once per scene (``sky_table``): per env sample
+(``geometry.env_samples``) and cell of a stencil about the sample's mirror
+direction r -- rings (``RING_EDGES``: 0.006 rad first ring, up to ``MAX_PHI``
+sectors a ring, one sector centred on the plane of incidence; 690 cells) --
+c = Q x the radiance prefiltered to the cell's size at its cos-weighted
+centroid, Q = int_cell max(cos_i, 0) dw tabulated against theta_o. Per step
+the renderer evaluates a lobe only at ``Detail.nodes`` theta_o nodes (dense
+towards grazing) x cells x ``Detail.sub`` points per cell (``node_geometry``:
+the lobe is averaged over the cell, the radiance is not -- it is prefiltered),
+interpolates cos_o x lobe linearly in theta_o per sample and sums against c
+as one batched matrix product (``blocks``, ``sky_sum``). Against a
+brute-force hemisphere quadrature (``tests/test_envlight_reference.py``):
+Beckmann m = 0.1 within 0.33 % and m = 0.25 within 0.3 % for theta_o up to
+89.5 degrees; the error against Mitsuba per discretisation is measured by
+``benchmarks/envlight.py``.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from typing import NamedTuple
+
+import numpy as np
+
+#: Ring edges (radians from the mirror direction) of the sky stencil.
+#: Below 0.3 rad twice as many rings as the first version (midpoints added): a midpoint
+#: rule in angle over a Gaussian-like lobe is -0.3 % (Phong e = 300) to +0.4 % (Beckmann
+#: m = 0.1) biased on the coarser rings, measured against a brute-force quadrature
+#: (``tests/test_envlight_reference.py``).
+RING_EDGES = np.array([0.0, 0.006, 0.012, 0.0195, 0.027, 0.036, 0.045, 0.055, 0.065, 0.0775, 0.09,
+                       0.105, 0.12, 0.1375, 0.155, 0.175, 0.195, 0.2175, 0.24, 0.265, 0.29, 0.35,
+                       0.42, 0.5, 0.6, 0.72, 0.86, 1.03, 1.25, 1.5, 1.8, 2.2, 2.65, np.pi])
+#: Azimuthal cells per ring: about square cells, between these bounds. A microfacet lobe at
+#: grazing view is a stripe in the plane of incidence only ~2 m cos(theta_o) wide across
+#: it: 16 sectors left Beckmann m = 0.1 -2 % / -4 % / -6 % low at theta_o = 70 / 80 / 84
+#: degrees (the "limb" error against Mitsuba); 24 sectors -0.2 / -0.6 / -0.5 %.
+MIN_PHI, MAX_PHI = 6, 24
+
+class Detail(NamedTuple):
+    """The discretisation of the sky term (the public knob of its quadrature error).
+
+    Attributes:
+        nodes: theta_o nodes at which the lobe is evaluated (``LOBE_NODES``).
+        sub: (alpha, phi) lobe points per stencil cell (``LOBE_SUB``; each divides 8).
+
+    ``Detail.finer()`` (193 nodes, 4 x 8 points) is about 4x the per-step lobe
+    cost; the difference of a render with it estimates the default's error.
+    """
+
+    nodes: int = 97
+    sub: tuple = (2, 4)
+
+    @classmethod
+    def finer(cls) -> Detail:
+        return cls(nodes=193, sub=(4, 8))
+
+
+# ---------------------------------------------------------------------- the sky stencil
+#: Cosine tables: angles between n and r (0 .. pi/2) at which Q and the centroids are tabulated.
+N_THETA = 129
+_FINE = 8  # sub-cells per cell side when tabulating
+
+
+def _cells(sub, sub_phi=None):
+    """Sub-cells (``sub`` in alpha x ``sub_phi`` in phi per cell, consecutive) of the stencil
+    about +z in (cos alpha, phi, d cos, d phi, cell id) and the number of cells: rings in
+    alpha (``RING_EDGES``), each cut into azimuthal sectors, one centred on phi = 0."""
+    sub_phi = sub if sub_phi is None else sub_phi
+    ct, ph, dct, dph, cell = [], [], [], [], []
+    n = 0
+    for a0, a1 in itertools.pairwise(RING_EDGES):
+        mid = 0.5 * (a0 + a1)
+        nphi = 1 if a0 == 0 else int(np.clip(round(2 * np.pi * np.sin(mid) / (a1 - a0)),
+                                             MIN_PHI, MAX_PHI))
+        ca = np.cos(np.linspace(a0, a1, sub + 1))
+        for j in range(nphi):
+            for sa in range(sub):
+                for sp in range(sub_phi):
+                    ct.append(0.5 * (ca[sa] + ca[sa + 1]))  # equal-area midpoint in cos
+                    ph.append(2 * np.pi * (j + (sp + 0.5) / sub_phi - 0.5) / nphi)
+                    dct.append(ca[sa] - ca[sa + 1])
+                    dph.append(2 * np.pi / nphi / sub_phi)
+                    cell.append(n)
+            n += 1
+    return tuple(np.array(a) for a in (ct, ph, dct, dph, cell)) + (n,)
+
+
+def _tables():
+    """Per cell and angle theta_o between n and r: Q = int_cell max(n.w, 0) dw, the unit
+    direction of the cos-weighted centroid (local frame: r = +z, n in the xz plane) and
+    the cell's angular size sqrt(solid angle)."""
+    ct, ph, dct, dph, cell, n = _cells(_FINE)
+    st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
+    dw = dct * dph
+    th = np.linspace(0.0, np.pi / 2, N_THETA)
+    q = np.zeros((N_THETA, n))
+    cen = np.zeros((N_THETA, n, 3))
+    size = np.zeros((N_THETA, n))
+    d = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1)
+    for t in range(N_THETA):
+        w = np.maximum(d @ np.array([np.sin(th[t]), 0.0, np.cos(th[t])]), 0.0) * dw
+        q[t] = np.bincount(cell, w, n)
+        size[t] = np.sqrt(np.bincount(cell, dw, n))
+        for i in range(3):
+            cen[t, :, i] = np.bincount(cell, w * d[:, i], n)
+    nl = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)
+    norm = np.linalg.norm(cen, axis=-1, keepdims=True)
+    cen = np.where(norm > 0, cen / np.where(norm > 0, norm, 1.0), nl[:, None])
+    return q, cen, size
+
+
+_tables = functools.cache(_tables)  # built on first use (~0.1 s), not at import
+
+
+#: Nodes in theta_o (0 .. pi/2, uniform) at which a lobe is evaluated on the stencil.
+#: The renderer evaluates the lobe once per node and cell (T x N values per step, not
+#: one per env sample and cell) and interpolates cos_o x lobe linearly in theta_o per
+#: sample; ``benchmarks/envlight.py`` measures the error against exact per-sample
+#: evaluation and against Mitsuba per node count (``lobe_nodes`` there).
+LOBE_NODES = Detail().nodes
+
+
+#: Points per cell (alpha x phi) at which the lobe is averaged: the sky's radiance is
+#: prefiltered to the cell's size, the lobe is not, and a microfacet lobe at grazing view
+#: is a stripe narrower than a sector (2 m cos(theta_o) across it). One point (the
+#: cell's centroid) was -/+17 % off at theta_o = 89 degrees for Beckmann m = 0.1 (sector
+#: edge / centre on the stripe); ``benchmarks/envlight.py`` measures the choices.
+LOBE_SUB = Detail().sub
+
+
+def node_angles(nodes: int = LOBE_NODES):
+    """The theta_o nodes (T,): 0 .. pi/2, spaced ~(1 - x) dense towards grazing, where
+    cos_o x lobe bends fastest (the last spacing pi/2 / (T - 1)^2)."""
+    x = np.linspace(0.0, 1.0, nodes)
+    return np.pi / 2 * (1.0 - (1.0 - x) ** 2)
+
+
+def _node_of(theta, nodes):
+    """The lower node (int32) of angles theta and the linear fraction towards the next."""
+    x = (1.0 - np.sqrt(np.clip(1.0 - theta / (np.pi / 2), 0.0, 1.0))) * (nodes - 1)
+    node = np.clip(np.floor(x).astype(np.int32), 0, nodes - 2)
+    th = node_angles(nodes)
+    return node, (theta - th[node]) / (th[node + 1] - th[node])
+
+
+@functools.cache
+def node_geometry(nodes: int = LOBE_NODES, sub: tuple = LOBE_SUB):
+    """``Cosines`` (T, N, M) of M points per stencil cell at the theta_o nodes and the
+    weights (T, N, M) by which the renderer sums a lobe there: cos_o x the point's
+    share of the cell's Q = int max(cos_i, 0) dw. The points are the cos-weighted
+    centroids of ``sub`` = (alpha, phi) groups of the ``_FINE`` sub-cells that
+    tabulate Q, so the shares sum to exactly 1 where Q > 0 (Lambert stays exact).
+    Local frame: r = +z, n = (sin t, 0, cos t), wo = (sin 2t, 0, cos 2t). Points
+    that receive nothing get the normal as a harmless stand-in direction (weight 0).
+    """
+    from .bsdf.base import cosines
+
+    sa, sp = sub
+    if _FINE % sa or _FINE % sp:
+        raise ValueError(f"sub = {sub}: each must divide _FINE = {_FINE}")
+    ct, ph, dct, dph, cell, n_cells = _cells(_FINE)
+    st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
+    d = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1)
+    dw = dct * dph
+    k = np.arange(ct.size) % (_FINE * _FINE)
+    gid = cell * (sa * sp) + (k // _FINE) // (_FINE // sa) * sp + (k % _FINE) // (_FINE // sp)
+    ng = n_cells * sa * sp
+    th = node_angles(nodes)
+    w = np.zeros((nodes, ng))
+    cen = np.zeros((nodes, ng, 3))
+    for t in range(nodes):
+        wf = np.maximum(d @ np.array([np.sin(th[t]), 0.0, np.cos(th[t])]), 0.0) * dw
+        w[t] = np.bincount(gid, wf, ng)
+        for i in range(3):
+            cen[t, :, i] = np.bincount(gid, wf * d[:, i], ng)
+    n = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)[:, None]
+    wo = np.stack([np.sin(2 * th), np.zeros_like(th), np.cos(2 * th)], -1)[:, None]
+    norm = np.linalg.norm(cen, axis=-1, keepdims=True)
+    lit = w > 0
+    cen = np.where(lit[..., None], cen / np.where(norm > 0, norm, 1.0), n)
+    w = w.reshape(nodes, n_cells, -1)
+    tot = w.sum(-1, keepdims=True)
+    w = np.where(tot > 0, w / np.where(tot > 0, tot, 1.0), 0.0) * np.cos(th)[:, None, None]
+    cos = cosines(np.broadcast_to(n, cen.shape), cen, np.broadcast_to(wo, cen.shape))
+    return _reshaped(cos, (nodes, n_cells, sa * sp)), w
+
+
+def _reshaped(cos, shape):
+    return type(cos)(*(np.reshape(a, shape) for a in cos))
+
+
+#: Env samples per block of the sky sum: a block holds samples of one theta_o node only,
+#: so the sum is one batched matrix product (blocks x (B x 3, N) @ (N, columns)) with
+#: the lobe's values at two nodes per block, not a per-sample gather (~20x slower here).
+BLOCK = 16
+
+
+def blocks(node, block: int = BLOCK):
+    """Blocked order of env samples by node: (order (R,) sample index or -1 for padding,
+    block_node (R / block,)); each block's samples share one node."""
+    node = np.asarray(node)
+    order, bnode = [], []
+    srt = np.argsort(node, kind="stable")
+    bounds = np.searchsorted(node[srt], np.arange(int(node.max(initial=-1)) + 2))
+    for j in range(bounds.size - 1):
+        idx = srt[bounds[j]:bounds[j + 1]]
+        if idx.size:
+            nb = -(-idx.size // block)
+            order.append(np.concatenate([idx, np.full(nb * block - idx.size, -1)]))
+            bnode += [j] * nb
+    if not order:
+        return np.zeros(0, np.int64), np.zeros(0, np.int32)
+    return np.concatenate(order), np.asarray(bnode, np.int32)
+
+
+def sky_sum(h, block_node, frac, c):
+    """Per env sample sum over cells of the node-interpolated h times c (JAX).
+
+    h: (..., T, N) or (..., T, N, 3) lobe x ``node_geometry`` weight (an RGB
+    last axis for coloured lobes); block_node (nb,); frac (R,) the sample's
+    position between its block's node and the next; c (nb, B x 3, N): samples
+    x RGB rows (``sky_table``, blocked by ``blocks``). Returns (..., R, 3).
+    """
+    import jax.numpy as jnp
+
+    rgb = h.shape[-1] == 3 and h.shape[-2] == c.shape[-1]
+    nd = 3 if rgb else 2
+    lead = h.shape[:h.ndim - nd]
+    nb, rows, n = c.shape
+    b = rows // 3
+    # (T, N, [3,] K): the lobe's columns (lead axes) last, for a plain batched matmul.
+    ht = jnp.moveaxis(h.reshape((-1,) + h.shape[-nd:]), 0, -1)
+    h0 = jnp.take(ht, block_node, axis=0)
+    h1 = jnp.take(ht, block_node + 1, axis=0)
+    k = ht.shape[-1]
+    if rgb:  # per channel: (nb, B, 3, N) x (nb, N, 3, K)
+        c4 = c.reshape(nb, b, 3, n).astype(h.dtype)
+        out = jnp.einsum("bscn,bnck->bsck", c4, jnp.concatenate([h0, h1], -1))
+    else:
+        out = jnp.einsum("brn,bnk->brk", c.astype(h.dtype), jnp.concatenate([h0, h1], -1))
+        out = out.reshape(nb, b, 3, 2 * k)
+    f = frac.reshape(nb, b, 1, 1).astype(h.dtype)
+    val = out[..., :k] + (out[..., k:] - out[..., :k]) * f  # (nb, B, 3, K)
+    val = jnp.moveaxis(val.reshape(nb * b, 3, k), -1, 0)  # (K, R, 3)
+    return val.reshape(lead + (nb * b, 3))
+
+
+def _flat_levels(sky):
+    """The pyramid's levels in one flat (sum h w, 3) array with per-level (h, w, offset)."""
+    flat = np.concatenate([lv.reshape(-1, 3) for lv in sky.levels])
+    shp = np.array([lv.shape[:2] for lv in sky.levels])
+    off = np.concatenate([[0], np.cumsum(shp[:, 0] * shp[:, 1])[:-1]])
+    return flat, shp[:, 0], shp[:, 1], off
+
+
+@functools.cache
+def _table_fn():
+    """The per-chunk tabulation of ``sky_table`` (JAX, the inputs' dtype; jitted by
+    ``_table_all_fn``)."""
+    import jax.numpy as jnp
+
+    def bil(flat, h, w, off, u, v):  # Mitsuba's bilinear lookup, per cell's level
+        hf, wf = h.astype(u.dtype), w.astype(u.dtype)
+        fx, fy = u * wf - 0.5, v * (hf - 1)
+        x0 = jnp.floor(fx)
+        y0 = jnp.clip(jnp.floor(fy), 0.0, hf - 2)
+        wx, wy = (fx - x0)[..., None], jnp.clip(fy - y0, 0.0, 1.0)[..., None]
+        x0i = jnp.mod(x0.astype(jnp.int32), w)
+        x1i = jnp.mod(x0i + 1, w)
+        y0i = y0.astype(jnp.int32) * w + off
+        t = lambda i: jnp.take(flat, i, axis=0)
+        top = t(y0i + x0i) * (1 - wx) + t(y0i + x1i) * wx
+        bot = t(y0i + w + x0i) * (1 - wx) + t(y0i + w + x1i) * wx
+        return top * (1 - wy) + bot * wy
+
+    def fn(nrm, wo, wt, q_tab, cen_tab, flat, lh, lw, loff, lo, fl):
+        co = jnp.clip(jnp.sum(nrm * wo, -1), 0.0, 1.0)
+        r = 2.0 * co[:, None] * nrm - wo
+        t = nrm - co[:, None] * r
+        tn = jnp.linalg.norm(t, axis=-1, keepdims=True)
+        a = jnp.where(jnp.abs(r[:, :1]) < 0.9, jnp.array([1.0, 0, 0], r.dtype),
+                      jnp.array([0, 1.0, 0], r.dtype))
+        t0 = jnp.cross(a, r)
+        t0 = t0 / jnp.linalg.norm(t0, axis=-1, keepdims=True)
+        t = jnp.where(tn > 1e-9, t / jnp.where(tn > 0, tn, 1.0), t0)
+        b = jnp.cross(r, t)
+        th = jnp.arccos(co)
+        x = th / (jnp.pi / 2) * (q_tab.shape[0] - 1)
+        i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, q_tab.shape[0] - 2)
+        f = (x - i0.astype(x.dtype))[:, None]
+        q = q_tab[i0] * (1 - f) + q_tab[i0 + 1] * f  # (C, N)
+        cl = cen_tab[i0] * (1 - f[..., None]) + cen_tab[i0 + 1] * f[..., None]
+        d = cl[..., :1] * t[:, None] + cl[..., 1:2] * b[:, None] + cl[..., 2:] * r[:, None]
+        d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+        u = jnp.arctan2(d[..., 0], -d[..., 2]) / (2.0 * jnp.pi)
+        u = u - jnp.floor(u)
+        v = jnp.arctan2(jnp.hypot(d[..., 0], d[..., 2]), d[..., 1]) / jnp.pi
+        rad = (bil(flat, lh[lo], lw[lo], loff[lo], u, v) * (1 - fl)[:, None]
+               + bil(flat, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
+        lit = (q > 0) & (jnp.sum(d * nrm[:, None], -1) > 0)
+        c = jnp.where(lit[..., None], rad * (q * wt[:, None] / co[:, None])[..., None], 0.0)
+        return jnp.swapaxes(c, 1, 2).astype(jnp.float64)  # (C, 3, N), float64 sums
+
+    return fn
+
+
+@functools.cache
+def _table_all_fn():
+    """Jitted ``_table_fn`` over chunks (n, step, ...) -> (n x step / B, rows, N) float64."""
+    import jax
+
+    def run(nrm, wo, wt, *consts, rows):
+        out = jax.lax.map(lambda x: _table_fn()(*x, *consts), (nrm, wo, wt))
+        return out.reshape((-1, rows, out.shape[-1]))
+
+    return jax.jit(run, static_argnames="rows")
+
+
+def _table_all(*args, rows):
+    return _table_all_fn()(*args, rows=rows)
+
+
+def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
+              chunk: int = 2048, dtype=np.float32):
+    """Env samples in blocks (``blocks``) and their sky-stencil weights.
+
+    ``normal``, ``view`` (S, 3): unit normal and unit direction to the camera
+    (n . view > 0); ``weight`` (S,) the sample's quadrature weight (default 1).
+    Returns (order (R,): sample index, -1 for padding; block_node (nb,); frac
+    (R,); c (nb, B x 3, N)) with c = weight x Q(theta_o) x the prefiltered
+    radiance at the cell's cos-weighted centroid / cos_o, per sample, RGB
+    channel and cell; Q = int_cell max(cos_i, 0) dw is tabulated per cell
+    (exact for a constant sky), and the 1/cos_o undoes the cos_o that
+    ``node_geometry`` folds into the lobe (smooth up to the horizon).
+
+    ``dtype``: the tabulation runs in float32 by default (c is returned as
+    float64 for the float64 sums): c only carries the sky's radiance and
+    geometric weights, smooth in the sample's directions, so rounding them
+    changes a render by at most 1.5e-6 relative (env_plastic, measured),
+    1000x below the stencil's quadrature error, for ~25 % less tabulation time.
+    """
+    import jax.numpy as jnp
+
+    q_tab, cen_tab, size_tab = _tables()
+    flat, lh, lw, loff = _flat_levels(sky)
+    lev = np.clip(np.log2(size_tab[0] / sky.texel), 0, len(sky.levels) - 1)  # theta-free
+    lo = np.minimum(np.floor(lev).astype(np.int32), max(len(sky.levels) - 2, 0))
+    fl = lev - lo
+    if len(sky.levels) == 1:  # a single level: look it up twice
+        lh, lw, loff = (np.concatenate([a, a]) for a in (lh, lw, loff))
+    lh, lw, loff = (np.asarray(a, np.int32) for a in (lh, lw, loff))
+    weight = np.ones(normal.shape[0]) if weight is None else np.asarray(weight, np.float64)
+    node, fr = _node_of(np.arccos(np.clip(np.sum(normal * view, -1), 0.0, 1.0)), nodes)
+    order, bnode = blocks(node)
+    n = size_tab.shape[1]
+    if not order.size:
+        return order, bnode, np.zeros(0), np.zeros((0, 3 * BLOCK, n))
+    step = min(chunk, order.size)
+    extra = (-order.size) % step  # whole padding blocks: every chunk the same shape
+    order = np.concatenate([order, np.full(extra, -1)])
+    bnode = np.concatenate([bnode, np.zeros(extra // BLOCK, np.int32)])
+    pad = order < 0
+    pick = np.where(pad, 0, order)
+    nrm = np.where(pad[:, None], [0.0, 0.0, 1.0], normal[pick])
+    wo = np.where(pad[:, None], [0.0, 0.0, 1.0], view[pick])
+    wt = np.where(pad, 0.0, weight[pick])
+    frac = np.where(pad, 0.0, fr[pick])
+    flt = lambda a: jnp.asarray(a, dtype) if np.asarray(a).dtype.kind == "f" \
+        else jnp.asarray(a)  # noqa: E731
+    consts = [flt(a) for a in (q_tab, cen_tab, flat, lh, lw, loff, lo, fl)]
+    # One jitted map over the chunks writing straight into the (nb, B x 3, N) float64
+    # table: no host copy of it (a fresh 0.5 GB costs seconds of page faults here).
+    c = _table_all(*(flt(x.reshape((-1, step) + x.shape[1:])) for x in (nrm, wo, wt)),
+                   *consts, rows=3 * BLOCK)
+    return order, bnode, frac, c
