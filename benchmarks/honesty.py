@@ -120,13 +120,14 @@ def _rows(name, res, truth):
         beyond = err > a + rel * np.abs(np.asarray(t, float))
         ratio = err / se
         bad = bool(np.any(beyond & (ratio > 3)) and res.status == "converged")
-        sys_ratio = None
+        sys_ratio = disc_ratio = None
         if key in getattr(res, "stderr_sys", {}):
-            sys_ratio = float(np.max(np.asarray(res.stderr_sys[key], float)
-                                     / np.maximum(np.asarray(res.stderr_stat[key], float),
-                                                  1e-300)))
+            stat = np.maximum(np.asarray(res.stderr_stat[key], float), 1e-300)
+            sys_ratio = float(np.max(np.asarray(res.stderr_sys[key], float) / stat))
+            if key in getattr(res, "stderr_disc", {}):
+                disc_ratio = float(np.max(np.asarray(res.stderr_disc[key], float) / stat))
         rows.append({"case": name, "param": key, "err_over_stderr": float(np.max(ratio)),
-                     "sys_over_stat": sys_ratio,
+                     "sys_over_stat": sys_ratio, "disc_over_stat": disc_ratio,
                      "err": float(np.max(err)), "beyond_tol": bool(np.any(beyond)),
                      "dishonest": bad})
     return rows
@@ -191,7 +192,12 @@ def main(argv=None):
             rec = {"case": name, "status": res.status, "message": res.message,
                    "warnings": res.warnings, "rows": rows, "seconds": time.perf_counter() - t0,
                    "stderr_sys": {k: np.asarray(v).tolist() for k, v in
-                                  getattr(res, "stderr_sys", {}).items()}}
+                                  getattr(res, "stderr_sys", {}).items()},
+                   "stderr_disc": {k: np.asarray(v).tolist() for k, v in
+                                   getattr(res, "stderr_disc", {}).items()},
+                   "discretisation": res.adequacy.get("blocks", {}).get("discretisation"),
+                   "unidentifiable": list(res.unidentifiable),
+                   "derived": getattr(res, "derived", {})}
             out.append(rec)
             worst = max(rows, key=lambda r: r["err_over_stderr"]) if rows else None
             print(f"{name:26s} {res.status:10s} "

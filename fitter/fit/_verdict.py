@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from ..bsdf.derived import settle
 from ..render import render_active
 from . import _adequacy, _discretisation
 from ._compile import jac_full
@@ -152,7 +153,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
                         "the stated errors include a systematic part up to "
                         f"{sys_ratio:.3g} times the statistical one (stderr_sys, stderr_stat)")
     total = time.perf_counter() - t_start
-    return FitResult(
+    res = FitResult(
         params={k: (np.asarray(params[k]) if np.size(params[k]) > 1 else float(params[k]))
                 for k in spec.material.param_specs()}, stderr=stderr, free=[blk.key for blk in spec.blocks],
         unidentifiable=unidentifiable, correlation=corr, coordinates=coords, status=status,
@@ -163,6 +164,9 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         warnings=warnings, starts=starts, fitted=problem.fitted(0 if b is None else b),
         stderr_stat=stderr_stat, stderr_sys=stderr_sys, stderr_disc=stderr_disc,
         adequacy=adequacy)
+    if any(lb.derived is not None for lb in spec.material.lobe_objects):
+        settle(spec.material, res)  # a conductor's F0; eta, k only along its curve
+    return res
 
 
 def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_stat, params,

@@ -58,6 +58,10 @@ class FitResult:
         time_compile, time_run: seconds spent compiling and running.
         warnings: human-readable warnings (unidentifiable parameters, bounds).
         starts: one dict per start: ``{"params": ..., "cost": c, "status": s}``.
+        derived: quantities the image determines better than the
+            parameters they combine, ``{"lobe.name": {"value", "stderr"}}``
+            (a conductor's F0; ``fitter.bsdf.derived``); in ``to_dict``
+            under ``"derived"`` when there are any.
         fitted: (H, W) bool, the pixels of this target the fit used (selected
             and with a weight > 0); not part of ``to_dict``.
     """
@@ -84,6 +88,7 @@ class FitResult:
     stderr_sys: dict[str, Any] = dataclasses.field(default_factory=dict)
     adequacy: dict = dataclasses.field(default_factory=dict)
     stderr_disc: dict[str, Any] = dataclasses.field(default_factory=dict)
+    derived: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -115,6 +120,7 @@ class FitResult:
             "n_pixels": int(self.n_pixels),
             "n_excluded": int(self.n_excluded),
             "warnings": list(self.warnings),
+            **({"derived": self.derived} if self.derived else {}),
         }
 
 
