@@ -21,12 +21,14 @@ ring cells are the same in both, so its error is not in delta_z.
 
 from __future__ import annotations
 
+import functools
 import threading
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..bsdf.base import Cosines, cosines
 from ..environment import load_environment
 from ..geometry import build_geometry
 from ..material import Material
@@ -40,9 +42,9 @@ MAX_SUPERSAMPLING = 16
 #: less beyond (k + 1 at the least).
 MAX_SAMPLES = 2**23
 #: Lights (scene lights and sun cells) are rendered in groups of at most this
-#: many light x pixel x sample terms (each ~80 bytes in the geometry):
-#: the quarter-texel sun of the shipped probe is 128 lights.
-MAX_LIGHT_SAMPLES = 2**23
+#: many light x pixel x sample terms (~15 float64 temporaries each, in one
+#: jitted call): the quarter-texel sun of the shipped probe is 128 lights.
+MAX_LIGHT_SAMPLES = 2**22
 #: Sun cells of the finer environment: a quarter texel (``envlight.SUN_CELL``
 #: is a half), integrated with twice the sub-samples. Measured on the probe:
 #: Phong e = 300's exponent 3.2 % low with whole-texel cells, 0.6 % with half,
@@ -82,20 +84,54 @@ def finer_sun(scene, base_dir):
 
 
 def _lights_of(scene, material, base_dir):
-    """Every light of the finer model as a scene light: the scene's own and,
-    under an environment lighting opaque lobes, its sun cells as directional lights."""
-    lights = tuple(scene.lights)
+    """Every light of the finer model as (anchor (L, 3), is_point (L,), colour (L, 3)):
+    a point light's position, or a distant light's travel direction; the
+    scene's lights and, under an environment lighting opaque lobes, its sun
+    cells at ``FINER_SUN``."""
+    anchor, point, color = [], [], []
+    for light in scene.lights:
+        if isinstance(light, DirectionalLight):
+            anchor.append(light.direction)
+            point.append(False)
+            color.append(light.irradiance)
+        else:
+            anchor.append(light.position)
+            point.append(True)
+            color.append(light.intensity)
     if any(lb.kind == "brdf" for lb in material.lobe_objects) \
             and scene.environment.type != "black":
         dirs, irr = finer_sun(scene, base_dir)
-        lights += tuple(DirectionalLight(tuple(float(x) for x in -d), tuple(float(x) for x in e))
-                        for d, e in zip(dirs, irr))
-    return lights
+        anchor += list(-dirs)
+        point += [False] * len(dirs)
+        color += list(irr)
+    return (np.asarray(anchor, dtype=np.float64).reshape(-1, 3), np.asarray(point, dtype=bool),
+            np.asarray(color, dtype=np.float64).reshape(-1, 3))
 
 
 def _cast(a):
     return jnp.asarray(a, dtype=jnp.float64) if np.asarray(a).dtype.kind == "f" \
         else jnp.asarray(a)
+
+
+@functools.partial(jax.jit, static_argnames=("material", "env_type"))
+def _lit_value(params, geo, env, sphere, anchor, point, color, *, material, env_type):
+    """Values (P, 3) of the opaque lobes under lights (anchor, point, color),
+    the light terms computed here in JAX (as ``geometry.build_geometry`` does
+    in NumPy: light direction and fall-off, cosines, lit samples)."""
+    pos, n, view = geo.position[None], geo.normal[None], -geo.ray_dir[None]
+    to = jnp.where(point[:, None, None, None], anchor[:, None, None, :] - pos,
+                   -anchor[:, None, None, :] + 0.0 * pos)
+    r2 = jnp.sum(to * to, axis=-1)
+    wi = to / jnp.sqrt(r2)[..., None]
+    falloff = jnp.where(point[:, None, None], 1.0 / r2, 1.0)
+    cos = cosines(jnp.broadcast_to(n, wi.shape), wi, jnp.broadcast_to(view, wi.shape))
+    lit = geo.hit[None] & (cos.cos_i > 0) & (cos.cos_o > 0)
+    stand_in = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
+    cos = Cosines(*(jnp.where(lit, a, s) for a, s in zip(cos, stand_in)))
+    weight = jnp.where(lit, geo.sample_weight * cos.cos_i * falloff, 0.0)
+    geo = geo._replace(cosines=cos, light_weight=weight, light_color=color,
+                       background=jnp.zeros_like(geo.background))
+    return render_active(params, geo, env, sphere, material=material, env_type=env_type)
 
 
 def finer_values(problem, params) -> tuple[np.ndarray, np.ndarray]:
@@ -110,43 +146,44 @@ def finer_values(problem, params) -> tuple[np.ndarray, np.ndarray]:
     r = problem.renderer
     scene, material = r.scene, r.material
     base_dir = getattr(problem, "base_dir", None)
-    fine = scene.replace(supersampling=finer_supersampling(scene))
-    lights = _lights_of(scene, material, base_dir)
-    env = jax.tree_util.tree_map(_cast, load_environment(scene.environment, base_dir))
+    fine = scene.replace(supersampling=finer_supersampling(scene), lights=())
+    env64 = load_environment(scene.environment, base_dir)
+    geo = build_geometry(fine, scene.environment.type, env64, None)  # rays, hits, background
+    flat = np.asarray(r.pixel_index)[problem.rows]
+    index = np.asarray(geo.pixel_index)
+    pos = np.clip(np.searchsorted(index, flat), 0, index.size - 1)
+    covered = index[pos] == flat
+    sub = jax.tree_util.tree_map(_cast, geo.subset(pos[covered])._replace(
+        pixel_index=None, background_image=None))
+    del geo
+    env = jax.tree_util.tree_map(_cast, env64)
     sphere = (jnp.asarray(scene.sphere.center, jnp.float64),
               jnp.asarray(scene.sphere.radius, jnp.float64))
     p64 = {k: jnp.asarray(v, jnp.float64) for k, v in params.items()}
+    # No lights: the specular lobes and the background.
+    vals = np.asarray(render_active(p64, sub, env, sphere, material=material,
+                                    env_type=r.env_type), dtype=np.float64)
+    anchor, point, color = _lights_of(scene, material, base_dir)
     opaque = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
-    brdf_only = Material.make(opaque, {k: v for k, v in material.options
-                                       if k.split(".")[0] in opaque}) if opaque else None
-    flat = np.asarray(r.pixel_index)[problem.rows]
-    n_pix = max(int(flat.size), 1)
-    size = max(MAX_LIGHT_SAMPLES // (n_pix * fine.supersampling**2), 1)
-    groups = [lights[i:i + size] for i in range(0, len(lights), size)] or [()]
-    vals, covered = np.zeros((flat.size, 3)), None
-    for g, group in enumerate(groups):
-        # The first group carries the specular lobes and the background; the
-        # others add their lights' opaque lobes only (linearity).
-        mat = material if g == 0 else brdf_only
-        if len(group) < size and g > 0:  # pad: one compile for every group
-            group = group + (DirectionalLight((0.0, 0.0, -1.0), (0.0, 0.0, 0.0)),) * (
-                size - len(group))
-        geo = build_geometry(fine.replace(lights=group), scene.environment.type,
-                             load_environment(scene.environment, base_dir), None)
-        index = np.asarray(geo.pixel_index)
-        pos = np.clip(np.searchsorted(index, flat), 0, index.size - 1)
-        hit = index[pos] == flat
-        covered = hit if covered is None else covered & hit
-        sub = jax.tree_util.tree_map(_cast, geo.subset(pos[hit])._replace(
-            pixel_index=None, background_image=None))
-        del geo
-        out = np.zeros((flat.size, 3))
-        keys = mat.param_specs()
-        out[hit] = np.asarray(render_active({k: v for k, v in p64.items() if k in keys}, sub,
-                                            env, sphere, material=mat,
-                                            env_type=r.env_type), dtype=np.float64)
-        vals += out
-    return vals, covered
+    if opaque and len(anchor):
+        brdf = Material.make(opaque, {k: v for k, v in material.options
+                                      if k.split(".")[0] in opaque})
+        keys = brdf.param_specs()
+        pb = {k: v for k, v in p64.items() if k in keys}
+        size = max(MAX_LIGHT_SAMPLES // (max(int(covered.sum()), 1) * fine.supersampling**2), 1)
+        size = min(size, len(anchor))
+        pad = -len(anchor) % size  # zero lights: one compile for every group
+        anchor = np.concatenate([anchor, np.tile([[0.0, 0.0, -1.0]], (pad, 1))])
+        point = np.concatenate([point, np.zeros(pad, bool)])
+        color = np.concatenate([color, np.zeros((pad, 3))])
+        for lo in range(0, len(anchor), size):
+            sl = slice(lo, lo + size)
+            vals = vals + np.asarray(_lit_value(
+                pb, sub, env, sphere, jnp.asarray(anchor[sl]), jnp.asarray(point[sl]),
+                jnp.asarray(color[sl]), material=brdf, env_type=r.env_type), dtype=np.float64)
+    out = np.zeros((flat.size, 3))
+    out[covered] = vals
+    return out, covered
 
 
 def coarse_without_sky(data, params, material, env_type, model) -> np.ndarray:
