@@ -6,7 +6,8 @@ environment lighting opaque lobes, the map as sun cells and a sky stencil
 model's discretisation error is an error of the parameters the residual does
 not show (it is absorbed). "k vs 2k": at the fitted parameters, render once
 with the discretisation refined -- 2k x 2k samples per pixel, sun cells of a
-quarter texel instead of a half (``FINER_SUN``) -- and take the difference
+quarter texel instead of a half (``FINER_SUN``), a dielectric's internal
+bounces doubled (``finer_material``) -- and take the difference
 d = finer - fitted over the fitted pixels. Through the fit's linearisation,
 
     delta_z = (J^T W J)^-1 J^T W d
@@ -108,6 +109,19 @@ def _lights_of(scene, material, base_dir):
             np.asarray(color, dtype=np.float64).reshape(-1, 3))
 
 
+def finer_material(material):
+    """The material with every lobe's integer ``bounces`` option (a dielectric's
+    internal reflections) doubled, within its ``most``."""
+    opts = dict(material.options)
+    for lb in material.lobe_objects:
+        for opt in lb.options:
+            if opt.name == "bounces" and opt.choices is None:
+                key = f"{lb.name}.{opt.name}"
+                more = 2 * int(opts.get(key, opt.default))
+                opts[key] = more if opt.most is None else min(more, opt.most)
+    return Material.make(material.lobes, opts)
+
+
 def _cast(a):
     return jnp.asarray(a, dtype=jnp.float64) if np.asarray(a).dtype.kind == "f" \
         else jnp.asarray(a)
@@ -160,8 +174,8 @@ def finer_values(problem, params) -> tuple[np.ndarray, np.ndarray]:
     sphere = (jnp.asarray(scene.sphere.center, jnp.float64),
               jnp.asarray(scene.sphere.radius, jnp.float64))
     p64 = {k: jnp.asarray(v, jnp.float64) for k, v in params.items()}
-    # No lights: the specular lobes and the background.
-    vals = np.asarray(render_active(p64, sub, env, sphere, material=material,
+    # No lights: the specular lobes (more bounces) and the background.
+    vals = np.asarray(render_active(p64, sub, env, sphere, material=finer_material(material),
                                     env_type=r.env_type), dtype=np.float64)
     anchor, point, color = _lights_of(scene, material, base_dir)
     opaque = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]

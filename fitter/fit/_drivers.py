@@ -114,7 +114,9 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     if n_starts == 1 and identifiability:
         eig, along = weak_direction(problem.spec, r_factor(R))
         why, extra = None, np.zeros((0, problem.spec.n))
-        if eig >= WEAK_EIG:  # not a valley locally: profile the cost along it
+        # Not a valley locally: profile the cost along it (at a minimum only).
+        if eig >= WEAK_EIG and start_status(int(codes[best]), zs[best],
+                                            costs[best]) == "converged":
             why, extra, _ = weak_profile(problem.spec, data, zs[best], r_factor(R), r,
                                          problem.noise_sigma)
         if eig < WEAK_EIG or why:  # look from several starts (and check ambiguity)
