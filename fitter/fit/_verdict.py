@@ -189,13 +189,21 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
             "hac_over_stat_max": float(np.sqrt(np.max(
                 np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300))))}
     t0 = time.perf_counter()
-    finer, covered = _discretisation.finer_values(problem, params)
+    finer, coverage = _discretisation.finer_values(problem, params)
     coarse = _discretisation.coarse_without_sky(data, params, spec.material, spec.env_type,
                                                 model)
+    # The sky term (not refined) over the part of the pixel the finer samples
+    # see on the sphere: finer = finer lights + background + sky x coverage.
+    seen = np.asarray(data.geometry.hit, dtype=np.float64) @ np.asarray(
+        data.geometry.sample_weight, dtype=np.float64)
+    covered = coverage > 0
     w = np.asarray(data.weights, dtype=np.float64) * covered[:, None]
-    diff = finer - coarse
+    diff = finer + (model - coarse) * (coverage / np.maximum(seen, 1e-300))[:, None] - model
     delta = _discretisation.shift(Js, (diff * w).reshape(-1))
-    cov_disc = np.outer(delta, delta)
+    sky = _discretisation.sky_quadrature(data, params, spec.material, spec.env_type, model,
+                                         coarse)
+    delta_sky = _discretisation.shift(Js, (sky * w).reshape(-1))
+    cov_disc = np.outer(delta, delta) + np.outer(delta_sky, delta_sky)
     info["discretisation"] = {
         "supersampling": [problem.renderer.scene.supersampling,
                           _discretisation.finer_supersampling(problem.renderer.scene)],
