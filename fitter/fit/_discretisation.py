@@ -60,6 +60,10 @@ FINER_SUN = {"SUN_CELL": 4, "SUN_SUB": 16}
 #: instead, as that relative error of the non-Lambert lobes' sky term.
 SKY_STENCIL_ACCURACY = 0.007
 
+#: Body pixels (away from highlights and the rim: a smooth model error) the
+#: finer model renders: every this many-th, each standing for this many.
+BODY_STRIDE = 4
+
 _LOCK = threading.Lock()
 
 
@@ -216,12 +220,25 @@ def _fine_geometry(scene, rows_flat, env_type, env):
                     env_color=np.zeros((0, 0, 3)))
 
 
-def finer_values(problem, params) -> tuple[np.ndarray, np.ndarray]:
+def sample_rows(labels) -> tuple[np.ndarray, np.ndarray]:
+    """(rows (M,) of the fitted pixels the finer model renders, their weights (M,)):
+    every highlight and rim pixel (``_adequacy.pixel_regions`` 1, 2: where the
+    discretisation error sits), every ``BODY_STRIDE``-th body pixel, weighted
+    by the body's pixels per pick so J^T d stays an estimate of the whole sum."""
+    labels = np.asarray(labels)
+    body = np.nonzero(labels == 0)[0]
+    picked = body[::BODY_STRIDE]
+    rows = np.sort(np.concatenate([np.nonzero(labels != 0)[0], picked]))
+    weight = np.where(labels[rows] == 0, body.size / max(picked.size, 1), 1.0)
+    return rows, weight
+
+
+def finer_values(problem, params, rows=None) -> tuple[np.ndarray, np.ndarray]:
     """Values of the fitted pixels by the finer model, sky term excluded.
 
     Returns (values (P, 3), coverage (P,)): coverage is the share of the
     pixel the finer samples see on the sphere (the sky term scales with it). ``params``: complete
-    parameters in user units. The sky stencil (``envlight.sky_stencil``, the
+    parameters in user units; ``rows``: which fitted pixels (default all). The sky stencil (``envlight.sky_stencil``, the
     smooth part of an environment) is not refined: compare with
     ``coarse_without_sky``.
     """
@@ -231,6 +248,8 @@ def finer_values(problem, params) -> tuple[np.ndarray, np.ndarray]:
     fine = scene.replace(supersampling=finer_supersampling(scene))
     env = jax.tree_util.tree_map(_cast, load_environment(scene.environment, base_dir))
     flat = np.asarray(r.pixel_index)[problem.rows]
+    if rows is not None:
+        flat = flat[rows]
     geo = _fine_geometry(fine, flat, scene.environment.type, env)
     covered = np.asarray(geo.hit).any(axis=1)
     sub = jax.tree_util.tree_map(_cast, geo)
