@@ -23,7 +23,6 @@ the same way instead.
 
 from __future__ import annotations
 
-import functools
 import threading
 
 import jax
