@@ -109,24 +109,32 @@ def _rows(name, res, truth):
     rows = []
     identifiable = [k for k in res.free if k not in res.unidentifiable]
     for key, t in truth.items():
-        if key not in res.stderr or key not in identifiable:
-            continue
         short = key.split(".")[1]
         if short not in TOL:
             continue
         a, rel = TOL[short]
         err = np.abs(np.asarray(res.params[key], float) - np.asarray(t, float))
+        if key in res.unidentifiable and key in res.free:  # reported, no error stated
+            rows.append({"case": name, "param": key, "err_over_stderr": None,
+                         "sys_over_stat": None, "disc_over_stat": None,
+                         "err": float(np.max(err)),
+                         "beyond_tol": bool(np.any(err > a + rel * np.abs(np.asarray(t, float)))),
+                         "dishonest": False, "unidentifiable": True})
+            continue
+        if key not in res.stderr or key not in identifiable:
+            continue
         se = np.maximum(np.asarray(res.stderr[key], float), 1e-300)
         beyond = err > a + rel * np.abs(np.asarray(t, float))
         ratio = err / se
         bad = bool(np.any(beyond & (ratio > 3)) and res.status == "converged")
-        sys_ratio = None
+        sys_ratio = disc_ratio = None
         if key in getattr(res, "stderr_sys", {}):
-            sys_ratio = float(np.max(np.asarray(res.stderr_sys[key], float)
-                                     / np.maximum(np.asarray(res.stderr_stat[key], float),
-                                                  1e-300)))
+            stat = np.maximum(np.asarray(res.stderr_stat[key], float), 1e-300)
+            sys_ratio = float(np.max(np.asarray(res.stderr_sys[key], float) / stat))
+            if key in getattr(res, "stderr_disc", {}):
+                disc_ratio = float(np.max(np.asarray(res.stderr_disc[key], float) / stat))
         rows.append({"case": name, "param": key, "err_over_stderr": float(np.max(ratio)),
-                     "sys_over_stat": sys_ratio,
+                     "sys_over_stat": sys_ratio, "disc_over_stat": disc_ratio,
                      "err": float(np.max(err)), "beyond_tol": bool(np.any(beyond)),
                      "dishonest": bad})
     return rows
@@ -138,7 +146,7 @@ def table(before: list, after: list) -> str:
     b = {(r["case"], x["param"]): (r, x) for r in before for x in r["rows"]}
     bs = {r["case"]: r for r in before}
     lines = ["| case | parameter | beyond tolerance | before: err/σ, status | "
-             "after: err/σ (σ_sys/σ_stat), status |", "|---|---|---|---|---|"]
+             "after: err/σ (σ_sys/σ_stat; σ_disc/σ_stat), status |", "|---|---|---|---|---|"]
     for r in after:
         for x in r["rows"]:
             old = b.get((r["case"], x["param"]))
@@ -147,9 +155,13 @@ def table(before: list, after: list) -> str:
                     f"{old[0]['status']}"
             else:
                 o = f"–, {bs[r['case']]['status']}" if r["case"] in bs else "n/a"
-            sys_ratio = x.get("sys_over_stat")
-            new = f"{x['err_over_stderr']:.3g}{'*' if x['dishonest'] else ''}" + (
-                f" ({sys_ratio:.2g})" if sys_ratio is not None else "") + f", {r['status']}"
+            sys_ratio, disc = x.get("sys_over_stat"), x.get("disc_over_stat")
+            if x.get("unidentifiable"):
+                new = f"unidentifiable, {r['status']}"
+            else:
+                new = f"{x['err_over_stderr']:.3g}{'*' if x['dishonest'] else ''}" + (
+                    f" ({sys_ratio:.2g}; {disc:.2g})" if disc is not None else
+                    f" ({sys_ratio:.2g})" if sys_ratio is not None else "") + f", {r['status']}"
             lines.append(f"| {r['case']} | {x['param'].split('.', 1)[1]} | "
                          f"{'yes' if x['beyond_tol'] else 'no'} | {o} | {new} |")
     return "\n".join(lines)
@@ -191,9 +203,15 @@ def main(argv=None):
             rec = {"case": name, "status": res.status, "message": res.message,
                    "warnings": res.warnings, "rows": rows, "seconds": time.perf_counter() - t0,
                    "stderr_sys": {k: np.asarray(v).tolist() for k, v in
-                                  getattr(res, "stderr_sys", {}).items()}}
+                                  getattr(res, "stderr_sys", {}).items()},
+                   "stderr_disc": {k: np.asarray(v).tolist() for k, v in
+                                   getattr(res, "stderr_disc", {}).items()},
+                   "discretisation": res.adequacy.get("blocks", {}).get("discretisation"),
+                   "unidentifiable": list(res.unidentifiable),
+                   "derived": getattr(res, "derived", {})}
             out.append(rec)
-            worst = max(rows, key=lambda r: r["err_over_stderr"]) if rows else None
+            rated = [r for r in rows if r["err_over_stderr"] is not None]
+            worst = max(rated, key=lambda r: r["err_over_stderr"]) if rated else None
             print(f"{name:26s} {res.status:10s} "
                   + (f"worst {worst['param']:26s} err/se {worst['err_over_stderr']:9.2f} "
                      f"beyond {worst['beyond_tol']!s:5s}" if worst else "")

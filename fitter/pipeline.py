@@ -147,10 +147,7 @@ def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *
         saturated = np.zeros(target.shape[:2], dtype=bool)
     with timed("fit", f"fitting ({job.fit.solver}, {job.fit.n_starts} start(s))") as note:
         result = fit_job(job, target, saturated, progress=note)
-        from .bsdf.derived import derive
-
-        derived, notes = derive(job.material, result)
-        result.warnings.extend(notes)
+        derived = result.derived  # the fit engine's (``fitter.bsdf.derived.settle``)
     with timed("render", "rendering the fit"):
         rendered = render_params(job, result.params)
     validation = None

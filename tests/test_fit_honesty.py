@@ -54,12 +54,15 @@ def test_white_noise_target_has_no_systematic_part():
     r = fitter.fit(target, SCENE, "lambert+torrance_sparrow", noise_sigma=0.01)
     assert r.status == "converged", r.message
     for k, v in r.stderr.items():
-        np.testing.assert_array_equal(r.stderr_sys[k], 0.0 * np.asarray(v))
-        np.testing.assert_allclose(v, r.stderr_stat[k], rtol=1e-12)
+        # No structured part: the systematic part is the discretisation's
+        # alone (k = 2 vs 4 samples per axis), and small against the noise.
+        np.testing.assert_allclose(r.stderr_sys[k], r.stderr_disc[k], rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(v, r.stderr_stat[k], rtol=0.02)
     assert abs(r.adequacy["neighbour_correlation"]) < 0.1
     assert set(r.adequacy["regions"]) == {"body", "highlight", "rim"}
     d = r.to_dict()
-    assert set(d["stderr_stat"]) == set(d["stderr"]) and "adequacy" in d
+    assert set(d["stderr_stat"]) == set(d["stderr"]) == set(d["stderr_disc"])
+    assert "adequacy" in d
 
 
 def test_regions_follow_the_geometry():
@@ -112,3 +115,24 @@ def test_weak_direction_triggers_several_starts_without_being_asked():
 ])
 def test_mitsuba_badge_uses_the_max(mean, mx, label):
     assert mitsuba_badge(mean, mx)[0] == label
+
+
+def test_discretisation_error_is_propagated_into_the_stated_error():
+    """k vs 2k: a noise-free target rendered with 16 x 16 samples per pixel,
+    fitted with 2 x 2. The fit absorbs the model's quadrature error (the
+    residual cannot show it); rendering the fit at 4 x 4 and taking the
+    difference through the linearisation gives the parameters' shift. The
+    stated errors cover the actual errors (which the reference at 16 x 16,
+    a converged quadrature, gives), and the discretisation part is most of it."""
+    fine = np.asarray(fitter.render(GLOSSY, SCENE.replace(supersampling=16)))
+    r = fitter.fit(fine, SCENE, "lambert+torrance_sparrow")
+    assert r.status == "converged", r.message
+    info = r.adequacy["blocks"]["discretisation"]
+    assert info["supersampling"] == [2, 4]
+    worst = 0.0
+    for k, t in GLOSSY.items():
+        err = np.abs(np.asarray(r.params[k]) - np.asarray(t))
+        worst = max(worst, float(np.max(err / np.asarray(r.stderr_stat[k]))))
+        assert np.all(err < 1.5 * np.asarray(r.stderr[k])), (k, err, r.stderr[k])
+        assert np.all(np.asarray(r.stderr_disc[k]) > 0.5 * err), (k, err, r.stderr_disc[k])
+    assert worst > 4.0  # measured 5.3: the statistical part alone would be over-confident

@@ -26,6 +26,10 @@ from ..material import Material, lobe_params
 #: times the derived quantity's) is reported as not determined on its own.
 LOOSE_REL = 0.02
 LOOSE_RATIO = 5.0
+#: Smallest eigenvalue of the correlation matrix of a derived quantity's
+#: inputs below which they trade along its curve (the fit's
+#: ``_identify.WEAK_EIG``; a conductor's eta/k on the shipped gold: 1.3e-5).
+WEAK_EIG = 1e-3
 #: Relative step of the central differences of dQ/dx.
 STEP = 1e-6
 
@@ -94,6 +98,78 @@ def derive(material: Material, result) -> tuple[dict[str, Any], list[str]]:
                         else _plain(stderr)}
             warnings += _loose(lobe.name, key, value, stderr, free, result)
     return out, warnings
+
+
+def settle(material: Material, result) -> None:
+    """Evaluate the derived quantities at a fit and mark inputs it determines
+    only through them: ``result.derived`` is set (``derive``), and an input
+    whose own error is far wider than the quantity's (``LOOSE_REL``,
+    ``LOOSE_RATIO``) or that lies along a valley of the inputs' correlation
+    (smallest eigenvalue below ``WEAK_EIG``) is moved to
+    ``result.unidentifiable`` without a standard error. The quantity keeps its
+    error, propagated from the whole covariance before the marking.
+    """
+    values, notes = derive(material, result)
+    result.derived = values
+    marked = []
+    for lobe in material.lobe_objects:
+        keys = [k for k in values if k.startswith(lobe.name + ".")]
+        if not keys:
+            continue
+        free = [k for k in result.free if k.startswith(lobe.name + ".")
+                and k not in result.unidentifiable and k in result.stderr
+                and k.split(".", 1)[1] in _inputs(lobe, material, result)]
+        loose = set()
+        for key in keys:
+            se = values[key]["stderr"]
+            if se is None:
+                continue
+            rel_q = np.max(np.abs(np.asarray(se)) / np.maximum(np.abs(
+                np.asarray(values[key]["value"])), 1e-12))
+            for k in free:
+                x, s = (np.asarray(result.params[k], float), np.asarray(result.stderr[k], float))
+                rel = float(np.max(s / np.maximum(np.abs(x), 1e-12)))
+                if rel > LOOSE_REL and rel > LOOSE_RATIO * rel_q:
+                    loose.add(k)
+        cov = _cov(result, free) if len(free) > 1 else None
+        if cov is not None:
+            d = np.sqrt(np.maximum(np.diag(cov[0]), 1e-300))
+            w, v = np.linalg.eigh(cov[0] / np.outer(d, d))
+            if w[0] < WEAK_EIG:
+                heavy = np.abs(v[:, 0]) >= 0.3 * np.abs(v[:, 0]).max()
+                loose |= {n.split("[")[0] for n, h in zip(cov[1], heavy) if h}
+        for k in free:
+            if k in loose:
+                marked.append(k)
+                for part in ("stderr", "stderr_stat", "stderr_sys", "stderr_disc"):
+                    getattr(result, part, {}).pop(k, None)
+                result.unidentifiable.append(k)
+        if loose:
+            q = ", ".join(f"{k} = {_fmt(values[k]['value'])} ± {_fmt(values[k]['stderr'])}"
+                          for k in keys if values[k]["stderr"] is not None)
+            names = ", ".join(k for k in free if k in loose)
+            short = ", ".join(k.split(".", 1)[1] for k in keys)
+            notes = [n for n in notes if "curve of equal" not in n]
+            notes.append(f"{names} are not identifiable on their own: they trade along the "
+                         f"curve of equal {short}, which is what this image determines ({q}); "
+                         "their values are one point of that curve")
+    result.warnings.extend(notes)
+
+
+def _inputs(lobe, material, result) -> set[str]:
+    """Names of the lobe's parameters its derived quantities depend on."""
+    opts = material.options_of(lobe.name)
+    p = {k: np.asarray(v, dtype=float) for k, v in lobe_params(result.params, lobe.name).items()
+         if k not in opts}
+    base = lobe.derived(p, opts)
+    out = set()
+    for k, v in p.items():
+        bumped = dict(p)
+        bumped[k] = v * (1 + 1e-3) + 1e-3
+        after = lobe.derived(bumped, opts)
+        if any(not np.allclose(after[n], base[n], rtol=0, atol=0) for n in base):
+            out.add(k)
+    return out
 
 
 def _loose(lobe: str, key: str, value, stderr, free, result) -> list[str]:

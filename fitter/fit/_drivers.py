@@ -22,7 +22,8 @@ from ..scene import Scene
 from . import _args, _coarse
 from ._compile import best_start, compiled, jac_res, r_factor, remember_jacobian
 from ._covariance import residual_variance
-from ._identify import WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction
+from ._identify import (WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction,
+                        weak_profile)
 from ._problem import blocks_of, format_value, user_values, z_from_params
 from ._search import cheapened, searched
 from ._setup import START_MARGIN, FitError, Problem
@@ -128,14 +129,23 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     note = None
     if n_starts == 1 and identifiability:
         eig, along = weak_direction(problem.spec, r_factor(R))
-        if eig < WEAK_EIG:  # a valley: look from several starts (and check ambiguity)
-            z0s = make_starts(problem.spec, problem.z_init(), AUTO_STARTS)
+        why, extra = None, np.zeros((0, problem.spec.n))
+        # Not a valley locally: profile the cost along it (at a minimum only).
+        if eig >= WEAK_EIG and start_status(int(codes[best]), zs[best],
+                                            costs[best]) == "converged":
+            why, extra, _ = weak_profile(problem.spec, data, zs[best], r_factor(R), r,
+                                         problem.noise_sigma)
+        if eig < WEAK_EIG or why:  # look from several starts (and check ambiguity)
+            z0s = np.concatenate([make_starts(problem.spec, problem.z_init(), AUTO_STARTS),
+                                  extra[:2]])
             zs, codes, nsteps, costs, best, (R, r), tc = solve_starts(
                 problem, z0s, data, say, "weakly identified: ")
             t_compile += tc
-            note = (f"weakly identified at the first solution (correlation eigenvalue "
-                    f"{eig:.2g} < {WEAK_EIG:g}, along {', '.join(along)}): solved from "
-                    f"{AUTO_STARTS} starts to check for a valley or another minimum")
+            found = (f"correlation eigenvalue {eig:.2g} < {WEAK_EIG:g}" if not why else
+                     f"the cost along the weakest direction shows {why}")
+            note = (f"weakly identified at the first solution ({found}, along "
+                    f"{', '.join(along)}): solved from {len(z0s)} starts to check for a "
+                    "valley or another minimum")
     starts = [{"params": user_values(problem.spec, zs[i], data.fixed), "cost": float(costs[i]),
                "status": start_status(int(codes[i]), zs[i], costs[i])}
               for i in range(len(costs))]

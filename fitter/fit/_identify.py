@@ -155,3 +155,96 @@ def weak_direction(spec: Spec, J) -> tuple[float, list[str]]:
     w, v = np.linalg.eigh(cov / np.outer(d, d))
     big = np.abs(v[:, 0]) >= 0.3 * np.abs(v[:, 0]).max()
     return float(w[0]), blocks_of(spec, big)
+
+
+#: Profile of the cost along the weakest direction (``profile``): points at
+#: these multiples of the stated error along it, both ways, each step capped
+#: at ``PROFILE_MAX_STEP`` in the fit's coordinates (about a box's width).
+PROFILE_T = (3.0, 10.0, 30.0)
+PROFILE_MAX_STEP = 4.0
+#: A profile point whose chi^2 rise is below this fraction of the quadratic
+#: model's (t^2) while that model puts it outside the 95 % region is a flat
+#: valley; a point below the best cost is another basin.
+PROFILE_FLAT = 0.25
+
+
+def profile_points(spec: Spec, z, J, s2: float):
+    """Points along the weakest direction of the covariance at ``z``: [(t, z_t)].
+
+    The direction is the correlation matrix's smallest eigenvector v scaled
+    by the standard errors D (a step a D v raises chi^2 by a^2 / w, w its
+    eigenvalue, were the cost quadratic), so z_t = z + t sqrt(w) D v is t
+    stated errors out along it.
+    """
+    J = np.asarray(J, dtype=np.float64)
+    if J.shape[1] < 1 or not np.all(np.isfinite(J)) or not s2 > 0:
+        return []
+    cov = covariance(spec, z, J, s2)[0]
+    if not np.all(np.isfinite(cov)):
+        return []
+    d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    w, v = np.linalg.eigh(cov / np.outer(d, d))
+    step = np.sqrt(max(w[0], 0.0)) * d * v[:, 0]
+    if np.any(frame(spec, z)[3]):  # a value at its bound: its coordinate is not z
+        return []
+    out = []
+    for t in PROFILE_T:
+        for sign in (1.0, -1.0):
+            dz = sign * t * step
+            big = np.max(np.abs(dz))
+            if big > PROFILE_MAX_STEP:
+                dz = dz * (PROFILE_MAX_STEP / big)
+            out.append((sign * t * min(1.0, PROFILE_MAX_STEP / max(big, 1e-300)),
+                        np.asarray(z, dtype=np.float64) + dz))
+    return out
+
+
+def profile_verdict(s2: float, cost: float, profile) -> tuple[str | None, list]:
+    """(why the profile calls for several starts or None, the points to start from).
+
+    ``profile``: [(t, z_t, cost_t)] from ``profile_points`` and the cost there.
+    Were the cost quadratic, cost_t - cost = s2 t^2 / 2. A point below the best
+    cost is another basin; one whose rise is below ``PROFILE_FLAT`` of that
+    while t^2 exceeds the 95 % chi^2 quantile is a flat valley.
+    """
+    from scipy.special import chdtri
+
+    level = chdtri(1, 1.0 - AMBIGUOUS_LEVEL)
+    why, starts = None, []
+    for t, zt, ct in profile:
+        if not np.isfinite(ct):
+            continue
+        rise = 2.0 * (ct - cost) / s2  # delta chi^2
+        if rise < 0:
+            why = why or f"another basin {abs(t):.3g} standard errors out (chi^2 {rise:+.3g})"
+            starts.append(zt)
+        elif t * t > level and rise < PROFILE_FLAT * t * t:
+            why = why or (f"a flat valley: chi^2 rises {rise:.3g} at {abs(t):.3g} standard "
+                          f"errors out, not {t * t:.3g}")
+            starts.append(zt)
+    return why, starts
+
+
+def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
+    """The cost profile along the weakest direction of a one-start fit:
+    (why several starts are needed or None, start points (k, n), seconds).
+
+    ``J``: the Jacobian's R factor at ``z``, ``r`` the residuals there. Each
+    point costs one residual evaluation (``jac_res``, compiled once).
+    """
+    import time
+
+    from ._compile import jac_res
+    from ._covariance import residual_variance
+
+    t0 = time.perf_counter()
+    r = np.asarray(r, dtype=np.float64)
+    s2 = residual_variance(noise_sigma, data, r, spec)
+    cost = 0.5 * float(r @ r)
+    points = profile_points(spec, z, J, s2)
+    evaluated = []
+    for t, zt in points:
+        rt = jac_res(spec, zt, data)[1]
+        evaluated.append((t, zt, 0.5 * float(rt @ rt)))
+    why, starts = profile_verdict(s2, cost, evaluated)
+    return why, np.asarray(starts).reshape(-1, np.size(z)), time.perf_counter() - t0

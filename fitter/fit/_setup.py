@@ -201,6 +201,7 @@ class Problem:
     noise: np.ndarray  # (B, 3) noise level estimated from each target
     unidentifiable: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
+    base_dir: str | None = None  # a relative envmap path is resolved against it
 
     @classmethod
     def make(cls, targets, scene, material, *, init=None, fixed=None, bounds=None,
@@ -284,7 +285,8 @@ class Problem:
                    noise_sigma=noise_sigma, dtype=dtype,
                    static={"solver_name": solver, "rtol": rtol, "atol": atol,
                            "max_steps": max_steps or default_max_steps(solver)},
-                   noise=np.asarray(noise))
+                   noise=np.asarray(noise),
+                   base_dir=os.path.abspath(base_dir) if base_dir else None)
 
     def cast(self, a):
         if isinstance(a, jax.Array):

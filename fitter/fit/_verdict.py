@@ -7,8 +7,9 @@ import time
 
 import numpy as np
 
+from ..bsdf.derived import settle
 from ..render import render_active
-from . import _adequacy
+from . import _adequacy, _discretisation
 from ._compile import jac_full
 from ._covariance import (covariance, degrees_of_freedom, intervals, residual_variance,
                           scaled_jacobian)
@@ -87,13 +88,22 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         sd = np.zeros_like(sd)
     params = user_values(spec, z, data.fixed)
     at_edge = frame(spec, z)[3]
-    sd_stat, sd_sys, hac = sd, np.zeros_like(sd), None
+    weights = np.asarray(data.weights, dtype=np.float64)
+    if spec.loss == "l2":  # residuals are (model - target) * weight
+        model = np.asarray(data.target) + r.reshape(-1, 3) / np.where(weights > 0, weights, 1.0)
+    else:
+        model = np.asarray(render_active(
+            {k: problem.cast(v) for k, v in params.items()}, data.geometry, data.env,
+            data.sphere, material=spec.material, env_type=spec.env_type))
+    sd_stat, sd_sys, sd_disc, hac = sd, np.zeros_like(sd), np.zeros_like(sd), None
     if np.all(np.isfinite(cov_z)) and np.any(sd > 0):
-        sd, sd_sys, hac = _with_systematic(problem, spec, data, z, cov_z, sd)
-    stderr, stderr_stat, stderr_sys, coords = {}, {}, {}, []
+        sd, sd_sys, sd_disc, hac = _with_systematic(problem, spec, data, z, cov_z, sd,
+                                                    params, model)
+    stderr, stderr_stat, stderr_sys, stderr_disc, coords = {}, {}, {}, {}, []
     for blk, sl in spec.slices():
         if blk.key not in unidentifiable:  # marked ambiguous: no error to give
-            for out, v in ((stderr, sd), (stderr_stat, sd_stat), (stderr_sys, sd_sys)):
+            for out, v in ((stderr, sd), (stderr_stat, sd_stat), (stderr_sys, sd_sys),
+                           (stderr_disc, sd_disc)):
                 out[blk.key] = v[sl] if blk.size == 3 else float(v[sl][0])
         coords += [blk.key] if blk.size == 1 else [f"{blk.key}[{i}]" for i in range(3)]
         if np.any(at_edge[sl]):
@@ -102,13 +112,6 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
                             "a +-1 sigma interval cut by that bound")
     d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
     corr = cov_z / np.outer(d, d)
-    weights = np.asarray(data.weights, dtype=np.float64)
-    if spec.loss == "l2":  # residuals are (model - target) * weight
-        model = np.asarray(data.target) + r.reshape(-1, 3) / np.where(weights > 0, weights, 1.0)
-    else:
-        model = np.asarray(render_active(
-            {k: problem.cast(v) for k, v in params.items()}, data.geometry, data.env,
-            data.sphere, material=spec.material, env_type=spec.env_type))
     rmse, used = _image_rmse(model, data)
     noise = problem.noise[0 if b is None else b]
     mean = np.sum(np.abs(np.where(used, np.asarray(data.target), 0.0))) / max(used.sum(), 1)
@@ -150,7 +153,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
                         "the stated errors include a systematic part up to "
                         f"{sys_ratio:.3g} times the statistical one (stderr_sys, stderr_stat)")
     total = time.perf_counter() - t_start
-    return FitResult(
+    res = FitResult(
         params={k: (np.asarray(params[k]) if np.size(params[k]) > 1 else float(params[k]))
                 for k in spec.material.param_specs()}, stderr=stderr, free=[blk.key for blk in spec.blocks],
         unidentifiable=unidentifiable, correlation=corr, coordinates=coords, status=status,
@@ -159,23 +162,64 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         n_excluded=problem.n_dropped + int(np.sum(~used.all(axis=-1))),
         time_compile=t_compile, time_run=max(total - t_compile, 0.0),
         warnings=warnings, starts=starts, fitted=problem.fitted(0 if b is None else b),
-        stderr_stat=stderr_stat, stderr_sys=stderr_sys, adequacy=adequacy)
+        stderr_stat=stderr_stat, stderr_sys=stderr_sys, stderr_disc=stderr_disc,
+        adequacy=adequacy)
+    if any(lb.derived is not None for lb in spec.material.lobe_objects):
+        settle(spec.material, res)  # a conductor's F0; eta, k only along its curve
+    return res
 
 
-def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_stat):
-    """(stderr total (n,), stderr systematic (n,), block info): the statistical
-    covariance plus the significant excess of the spatial-block sandwich
-    (``_adequacy``) over it; the parts add in quadrature."""
+def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_stat, params,
+                     model):
+    """(stderr total, systematic, of which discretisation (each (n,)), block info).
+
+    Systematic = the significant excess of the spatial-block sandwich
+    (``_adequacy``) over the statistical covariance, plus the outer product
+    of the parameter shift the model's own discretisation error implies
+    (``_discretisation``: the fitted parameters rendered k vs 2k, the
+    difference taken through the linearisation). The parts add in quadrature.
+    """
     J, r, _ = jac_full(spec, z, data)
+    Js = scaled_jacobian(spec, z, J)
     pix = np.asarray(problem.renderer.pixel_index)[problem.rows]
     ids, n_blocks = _adequacy.block_ids(pix, problem.renderer.scene.width)
-    cov_hac = _adequacy.sandwich(scaled_jacobian(spec, z, J), r, ids, n_blocks)
+    cov_hac = _adequacy.sandwich(Js, r, ids, n_blocks)
     cov_sys = _adequacy.systematic(cov_stat, cov_hac, n_blocks)
-    sd_tot = intervals(spec, z, cov_stat + cov_sys)[0]
+    info = {"n_blocks": int(n_blocks),
+            "hac_over_stat_max": float(np.sqrt(np.max(
+                np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300))))}
+    t0 = time.perf_counter()
+    rows, share = _discretisation.sample_rows(_adequacy.pixel_regions(data.geometry))
+    finer = np.zeros_like(model)
+    coverage = np.zeros(model.shape[0])
+    finer[rows], coverage[rows] = _discretisation.finer_values(problem, params, rows)
+    coarse = _discretisation.coarse_without_sky(data, params, spec.material, spec.env_type,
+                                                model)
+    # The sky term (not refined) over the part of the pixel the finer samples
+    # see on the sphere: finer = finer lights + background + sky x coverage.
+    seen = np.asarray(data.geometry.hit, dtype=np.float64) @ np.asarray(
+        data.geometry.sample_weight, dtype=np.float64)
+    covered = coverage > 0
+    scale = np.zeros(model.shape[0])
+    scale[rows] = share  # body pixels stand for their unrendered neighbours
+    w = np.asarray(data.weights, dtype=np.float64) * covered[:, None]
+    diff = finer + (model - coarse) * (coverage / np.maximum(seen, 1e-300))[:, None] - model
+    diff = np.where(covered[:, None], diff, 0.0)
+    delta = _discretisation.shift(Js, (diff * w * scale[:, None]).reshape(-1))
+    sky = _discretisation.sky_quadrature(data, params, spec.material, spec.env_type, model,
+                                         coarse)
+    delta_sky = _discretisation.shift(Js, (sky * w).reshape(-1))
+    cov_disc = np.outer(delta, delta) + np.outer(delta_sky, delta_sky)
+    info["discretisation"] = {
+        "supersampling": [problem.renderer.scene.supersampling,
+                          _discretisation.finer_supersampling(problem.renderer.scene)],
+        "rms_over_mean": float(np.sqrt(np.mean(diff[covered] ** 2))
+                               / max(float(np.mean(np.abs(model[covered]))), 1e-300)),
+        "seconds": time.perf_counter() - t0}
+    sd_tot = intervals(spec, z, cov_stat + cov_sys + cov_disc)[0]
     sd_sys = np.sqrt(np.maximum(sd_tot**2 - sd_stat**2, 0.0))
-    ratio = np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300)
-    return sd_tot, sd_sys, {"n_blocks": int(n_blocks),
-                            "hac_over_stat_max": float(np.sqrt(np.max(ratio)))}
+    sd_d = np.sqrt(np.maximum(intervals(spec, z, cov_stat + cov_disc)[0] ** 2 - sd_stat**2, 0.0))
+    return sd_tot, sd_sys, np.minimum(sd_d, sd_sys), info
 
 
 def all_held(problem: Problem, b: int, t_compile: float, t_run: float) -> FitResult:

@@ -26,7 +26,12 @@ class FitResult:
             spatially structured residuals (a model that cannot follow the
             image, its discretisation) add, from a spatial-block sandwich
             covariance; 0 where the residuals look white
-            (``fitter.fit._adequacy``).
+            (``fitter.fit._adequacy``); it includes ``stderr_disc``.
+        stderr_disc: the part of ``stderr_sys`` from the forward model's own
+            discretisation: the shift of the parameters that rendering the
+            fit with 2k x 2k sub-pixel samples (and, under an environment,
+            finer sun cells) instead of k x k implies through the fit's
+            linearisation (``fitter.fit._discretisation``).
         adequacy: what the residual says about the model: ``noise_ratio``
             (residual RMSE / noise level), ``regions`` (per region of the
             sphere -- body, highlight, rim --: pixels, RMSE / noise, share of
@@ -53,6 +58,10 @@ class FitResult:
         time_compile, time_run: seconds spent compiling and running.
         warnings: human-readable warnings (unidentifiable parameters, bounds).
         starts: one dict per start: ``{"params": ..., "cost": c, "status": s}``.
+        derived: quantities the image determines better than the
+            parameters they combine, ``{"lobe.name": {"value", "stderr"}}``
+            (a conductor's F0; ``fitter.bsdf.derived``); in ``to_dict``
+            under ``"derived"`` when there are any.
         fitted: (H, W) bool, the pixels of this target the fit used (selected
             and with a weight > 0); not part of ``to_dict``.
     """
@@ -78,6 +87,8 @@ class FitResult:
     stderr_stat: dict[str, Any] = dataclasses.field(default_factory=dict)
     stderr_sys: dict[str, Any] = dataclasses.field(default_factory=dict)
     adequacy: dict = dataclasses.field(default_factory=dict)
+    stderr_disc: dict[str, Any] = dataclasses.field(default_factory=dict)
+    derived: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -95,6 +106,7 @@ class FitResult:
             "stderr": {k: _plain(v) for k, v in self.stderr.items()},
             "stderr_stat": {k: _plain(v) for k, v in self.stderr_stat.items()},
             "stderr_sys": {k: _plain(v) for k, v in self.stderr_sys.items()},
+            "stderr_disc": {k: _plain(v) for k, v in self.stderr_disc.items()},
             "adequacy": self.adequacy,
             "unidentifiable": list(self.unidentifiable),
             "status": self.status,
@@ -108,6 +120,7 @@ class FitResult:
             "n_pixels": int(self.n_pixels),
             "n_excluded": int(self.n_excluded),
             "warnings": list(self.warnings),
+            **({"derived": self.derived} if self.derived else {}),
         }
 
 
