@@ -19,12 +19,21 @@ from ._solvers import make_solver, result_code
 #: solver's while loop into separate, unfused passes over (lights, pixels,
 #: samples) arrays: measured +30 ms per LM fit at 256^2 with 4x4 samples
 #: (fixed cost 45 -> 15 ms), for no gain per step.
-SOLVE_XLA_OPTIONS = {"xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
-#: XLA options for code run once on few pixels (the start's dead-column check,
-#: the start search): LLVM's optimisation off halves their compile (measured on
-#: the dielectric's start check: 3.1 -> 1.55 s, running 38 -> 49 ms; values
-#: differ by ~2e-11 relative, and only rank candidates or test a column for zero).
-ONCE_XLA_OPTIONS = {"xla_backend_optimization_level": 0}
+#: XLA options of every fit executable. XLA's CPU fusion emitters (MLIR, on by
+#: default in jax 0.10) compile these renderer graphs about twice as slowly
+#: as the older emitters, for no faster code: measured on the dielectric
+#: (128^2) solve, compile 2.7 -> 1.4 s, a solve 1.17 -> 1.12 s; its start
+#: check 2.1 -> 1.2 s, 35 -> 24 ms. Values change by rounding only (the
+#: solve's outputs by <= 4e-10 relative: the solver stops elsewhere within
+#: its tolerance).
+FAST_XLA_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+SOLVE_XLA_OPTIONS = {**FAST_XLA_OPTIONS,
+                     "xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
+#: XLA options for code run once on few pixels (the start's dead-column check):
+#: LLVM's optimisation off too cuts its compile again (dielectric: 1.2 ->
+#: 0.4 s, running 24 -> 64 ms; values differ by ~2e-11 relative, and only test
+#: a column for zero).
+ONCE_XLA_OPTIONS = {**FAST_XLA_OPTIONS, "xla_backend_optimization_level": 0}
 
 _COMPILED: dict = {}
 
@@ -150,9 +159,8 @@ def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
     single = jnp.result_type(args[0]) == jnp.float32
     t0 = time.perf_counter()
     with jax.enable_x64(not single):
-        options = (ONCE_XLA_OPTIONS if once else None if kind in ("jacres", "jacfull",
-                                                                  "gauss_newton")
-                   else SOLVE_XLA_OPTIONS)
+        options = (ONCE_XLA_OPTIONS if once else FAST_XLA_OPTIONS
+                   if kind in ("jacres", "jacfull", "gauss_newton") else SOLVE_XLA_OPTIONS)
         exe = compile_cached(f, args, repr(key), options)
     _COMPILED[key] = exe
     return exe, time.perf_counter() - t0

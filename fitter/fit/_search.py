@@ -24,7 +24,7 @@ import numpy as np
 from ..bsdf.base import SurfaceHit
 from ..environment import lookup
 from ..material import Material, lobe_params
-from ._compile import ONCE_XLA_OPTIONS
+from ._compile import FAST_XLA_OPTIONS
 
 #: About this many pixels enter the search.
 SEARCH_PIXELS = 2048
@@ -48,8 +48,7 @@ def _searcher(lobe, opts_items, env_type):
         return lobe.start_search.best(p, opts, hit, functools.partial(lookup, env_type, env),
                                       cost)
 
-    # Run once per fit on ~SEARCH_PIXELS samples: cheap code, quick to compile.
-    return jax.jit(run, compiler_options=ONCE_XLA_OPTIONS)
+    return jax.jit(run, compiler_options=FAST_XLA_OPTIONS)
 
 
 def searched(problem):
