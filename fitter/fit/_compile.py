@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..compilation_cache import FAST_COMPILE
 from ._cache import compile_cached
 from ._problem import Spec, residuals
 from ._solvers import make_solver, result_code
@@ -19,14 +20,10 @@ from ._solvers import make_solver, result_code
 #: solver's while loop into separate, unfused passes over (lights, pixels,
 #: samples) arrays: measured +30 ms per LM fit at 256^2 with 4x4 samples
 #: (fixed cost 45 -> 15 ms), for no gain per step.
-#: XLA options of every fit executable. XLA's CPU fusion emitters (MLIR, on by
-#: default in jax 0.10) compile these renderer graphs about twice as slowly
-#: as the older emitters, for no faster code: measured on the dielectric
-#: (128^2) solve, compile 2.7 -> 1.4 s, a solve 1.17 -> 1.12 s; its start
-#: check 2.1 -> 1.2 s, 35 -> 24 ms. Values change by rounding only (the
-#: solve's outputs by <= 4e-10 relative: the solver stops elsewhere within
-#: its tolerance).
-FAST_XLA_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+#: XLA options of every fit executable (``compilation_cache.FAST_COMPILE``:
+#: half the compile, same speed; the solve's outputs change by <= 4e-10
+#: relative, the solver stopping elsewhere within its tolerance).
+FAST_XLA_OPTIONS = FAST_COMPILE
 SOLVE_XLA_OPTIONS = {**FAST_XLA_OPTIONS,
                      "xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
 #: XLA options for code run once on few pixels (the start's dead-column check):
