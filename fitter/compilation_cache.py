@@ -16,7 +16,8 @@ import os
 #: about twice as slowly as the older emitters, for code no faster: measured on
 #: the dielectric (128^2) solve, compile 2.7 -> 1.4 s, a solve 1.17 -> 1.12 s;
 #: its start check 2.1 -> 1.2 s, 35 -> 24 ms. Results change by rounding only.
-#: On other backends XLA ignores the option.
+#: A field of XLA's DebugOptions, so every backend accepts it; only the CPU
+#: compiler reads it.
 FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
 
 
