@@ -4,6 +4,7 @@
 ``fitter.fit._cache``, their traces), so a repeated job -- in a later
 ``fitter fit`` or on another ``fitter batch`` worker -- skips XLA compilation.
 Importing this module is free; JAX is imported only when the cache is set.
+``FAST_COMPILE`` holds the XLA options the fit's executables are compiled with.
 """
 
 from __future__ import annotations
