@@ -18,10 +18,11 @@ import numpy as np
 
 from .bsdf.base import Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
+from .compilation_cache import FAST_COMPILE
 from .environment import EnvData, lookup
 from .scene import DirectionalLight, PointLight, Scene
 
-_LOOKUP = jax.jit(lookup, static_argnums=0)
+_LOOKUP = jax.jit(lookup, static_argnums=0, compiler_options=FAST_COMPILE)
 
 
 class Geometry(NamedTuple):

@@ -207,6 +207,7 @@ def render_params(job: Job, params: Mapping[str, Any]) -> np.ndarray:
     import jax
     import jax.numpy as jnp
 
+    from .compilation_cache import FAST_COMPILE
     from .fit._cache import compile_cached
     from .render import cached_renderer, exposed_background, render_active
 
@@ -223,7 +224,8 @@ def render_params(job: Job, params: Mapping[str, Any]) -> np.ndarray:
         return render_active(p, geo, env, sphere, material=material, env_type=env_type)
 
     shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), str(jnp.result_type(a))), args)
-    exe = compile_cached(active, args, repr(("render_active", material, env_type, str(shapes))))
+    exe = compile_cached(active, args, repr(("render_active", material, env_type, str(shapes))),
+                         FAST_COMPILE)
     vals = np.asarray(exe(*args))
     img = np.array(exposed_background(material, p, rend.geometry.background_image))
     img[np.asarray(rend.pixel_index)] = vals

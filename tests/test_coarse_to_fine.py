@@ -130,3 +130,30 @@ def test_the_stated_errors_do_not_linearise_again(target, monkeypatch, coarse):
     assert res.status == "converged" and res.stderr_sys  # the block sandwich ran
     assert "jacfull" not in kinds, kinds  # the block sandwich used the solver's J
     assert not _compile._JACOBIANS  # and let it go
+
+
+def test_the_start_check_of_a_coarse_fit_finds_a_dead_column(monkeypatch):
+    """A coarse fit's start check reads the Jacobian from the full-size
+    Gauss-Newton executable (``_drivers._hold_dead_columns``), not its own: a
+    parameter without effect (a mirror in a black environment) is still held
+    at the start, and the live ones fit as the direct fit does."""
+    from fitter.fit import _drivers
+
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "mirror.rho_m": 0.8}
+    img = np.asarray(fitter.render(truth, SCENE, "lambert+mirror"))
+    img = img + np.random.default_rng(1).normal(0.0, SIGMA, img.shape)
+    init = {"lambert.rho_d": 0.3, "mirror.rho_m": 0.5}
+    monkeypatch.setattr(_coarse, "MIN_PIXELS", 64 * 64)
+    fits = []
+    for coarse in (True, False):
+        monkeypatch.setattr(_coarse, "ENABLED", coarse)
+        with monkeypatch.context() as m:
+            if coarse:  # the strided check's own executable is not used
+                m.setattr(_drivers, "jac_res", None)
+            fits.append(fitter.fit(img, SCENE, "lambert+mirror", init=init))
+    for r in fits:
+        assert r.unidentifiable == ["mirror.rho_m"]
+        assert any("mirror.rho_m" in w and "at the start" in w for w in r.warnings)
+        assert r.params["mirror.rho_m"] == pytest.approx(0.5)
+    np.testing.assert_allclose(fits[0].params["lambert.rho_d"], fits[1].params["lambert.rho_d"],
+                               rtol=1e-6)

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..compilation_cache import FAST_COMPILE
 from ._cache import compile_cached
 from ._problem import Spec, residuals
 from ._solvers import make_solver, result_code
@@ -19,7 +20,17 @@ from ._solvers import make_solver, result_code
 #: solver's while loop into separate, unfused passes over (lights, pixels,
 #: samples) arrays: measured +30 ms per LM fit at 256^2 with 4x4 samples
 #: (fixed cost 45 -> 15 ms), for no gain per step.
-SOLVE_XLA_OPTIONS = {"xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
+#: XLA options of every fit executable (``compilation_cache.FAST_COMPILE``:
+#: half the compile, same speed; the solve's outputs change by <= 4e-10
+#: relative, the solver stopping elsewhere within its tolerance).
+FAST_XLA_OPTIONS = FAST_COMPILE
+SOLVE_XLA_OPTIONS = {**FAST_XLA_OPTIONS,
+                     "xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
+#: XLA options for code run once on few pixels (the start's dead-column check):
+#: LLVM's optimisation off too cuts its compile again (dielectric: 1.2 ->
+#: 0.4 s, running 24 -> 64 ms; values differ by ~2e-11 relative, and only test
+#: a column for zero).
+ONCE_XLA_OPTIONS = {**FAST_XLA_OPTIONS, "xla_backend_optimization_level": 0}
 
 _COMPILED: dict = {}
 
@@ -118,15 +129,16 @@ def _batch_fn(spec: Spec, batch: str, **static):
     return run
 
 
-def compiled(kind: str, spec: Spec, args, **static):
+def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
     """Compile (once per structure and shapes) and return (executable, seconds spent).
 
     ``kind``: ``"solve"`` (multi-start solve of one target), ``"batch"`` (one
-    start per stacked target), ``"jacres"`` (``jacobian_r``) or ``"jacfull"``
-    (``jacobian_full``).
+    start per stacked target), ``"jacres"`` (``jacobian_r``), ``"jacfull"``
+    (``jacobian_full``) or ``"gauss_newton"`` (``gauss_newton_step``).
+    ``once``: the code runs once on few pixels: compiled with ``ONCE_XLA_OPTIONS``.
     """
     shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
-    key = (kind, spec, tuple(sorted(static.items())), str(shapes))
+    key = (kind, spec, tuple(sorted(static.items())), str(shapes), once)
     if key in _COMPILED:
         return _COMPILED[key], 0.0
     if kind == "solve":
@@ -144,21 +156,22 @@ def compiled(kind: str, spec: Spec, args, **static):
     single = jnp.result_type(args[0]) == jnp.float32
     t0 = time.perf_counter()
     with jax.enable_x64(not single):
-        exe = compile_cached(f, args, repr(key), None if kind in ("jacres", "jacfull",
-                                                                   "gauss_newton")
-                             else SOLVE_XLA_OPTIONS)
+        options = (ONCE_XLA_OPTIONS if once else FAST_XLA_OPTIONS
+                   if kind in ("jacres", "jacfull", "gauss_newton") else SOLVE_XLA_OPTIONS)
+        exe = compile_cached(f, args, repr(key), options)
     _COMPILED[key] = exe
     return exe, time.perf_counter() - t0
 
 
-def jac_res(spec: Spec, z, data):
+def jac_res(spec: Spec, z, data, once: bool = False):
     """(R (n, n), residuals (N,), compile seconds) at ``z``, as float64 NumPy.
 
     R is the Jacobian's R factor (``jacobian_r``); diagnostics and
     covariances are computed in float64, whatever the fit's dtype.
+    ``once``: as ``compiled``'s (a check that runs once on few pixels).
     """
     z = jnp.asarray(z, dtype=data.target.dtype)
-    exe, tc = compiled("jacres", spec, (z, data))
+    exe, tc = compiled("jacres", spec, (z, data), once=once)
     R, r = exe(z, data)
     return r_factor(R), np.asarray(r, dtype=np.float64), tc
 

@@ -109,17 +109,19 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                            rtol=rtol, atol=atol, dtype=dtype, base_dir=base_dir)
     say = progress or _quiet
     problem = cheapened(searched(problem))
+    coarse = _coarse.eligible(problem.renderer.scene, mask=mask, exclude=exclude,
+                              weights=weights, saturation=saturation, loss=loss, dtype=dtype,
+                              n_starts=n_starts)
     t_compile = 0.0
     if identifiability:
         say("checking which parameters the pixels depend on")
-        problem, t_compile = _hold_dead_columns(problem)
+        problem, t_compile = _hold_dead_columns(problem, coarse)
         if not problem.blocks:
             return all_held(problem, 0, t_compile, 0.0)
     data = problem.data(0)
     z0s = make_starts(problem.spec, problem.z_init(), n_starts)
     first = None
-    if _coarse.eligible(problem.renderer.scene, mask=mask, exclude=exclude, weights=weights,
-                        saturation=saturation, loss=loss, dtype=dtype, n_starts=n_starts):
+    if coarse:
         first = _coarse.solve(problem, target.reshape(target.shape[-3:]), z0s, data,
                               solve_starts, say, base_dir)
     if first is None:
@@ -258,28 +260,40 @@ def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
     return results
 
 
-def _hold_dead_columns(problem: Problem) -> tuple[Problem, float]:
+def _hold_dead_columns(problem: Problem, coarse: bool = False) -> tuple[Problem, float]:
     """Hold parameters the fitted pixels do not depend on at the start.
 
     Returns the problem without them and the seconds spent compiling. The
     Jacobian does not depend on the target, so one check serves a batch.
+    ``coarse``: the fit will start coarse (``_coarse``), whose full-size
+    Gauss-Newton step has the Jacobian's R factor on all pixels: the check uses
+    that executable (one compile fewer) instead of its own.
     """
     z0 = problem.z_init()
     t_compile = 0.0
+    if coarse:
+        step, t_compile = compiled("gauss_newton", problem.spec,
+                                   (problem.cast(z0), problem.data(0)))
+        J0 = r_factor(step(problem.cast(z0), problem.data(0))[0])
+        dead = blocks_of(problem.spec, dead_columns(problem.spec, z0, J0))
+        return problem.held(dead, [_dead_reason(problem, k) for k in dead]), t_compile
     # A column alive on a strided subset of the pixels is alive (the common
     # case, at 1/8 of the cost); one that looks dead there is checked on all.
     stride = START_CHECK_STRIDE if problem.rows.size >= START_CHECK_STRIDE * 512 else 1
     while True:
-        J0, _, tc = jac_res(problem.spec, z0, problem.data(0, stride))
+        J0, _, tc = jac_res(problem.spec, z0, problem.data(0, stride), once=True)
         t_compile += tc
         dead = dead_columns(problem.spec, z0, J0)
         if stride == 1 or not dead.any():
             break
         stride = 1
     dead = blocks_of(problem.spec, dead)
-    return problem.held(dead, [f"{k} does not change the fitted pixels at the start (zero "
-                               f"Jacobian column); held at {format_value(problem.init_full[k])}"
-                               for k in dead]), t_compile
+    return problem.held(dead, [_dead_reason(problem, k) for k in dead]), t_compile
+
+
+def _dead_reason(problem: Problem, key: str) -> str:
+    return (f"{key} does not change the fitted pixels at the start (zero Jacobian column); "
+            f"held at {format_value(problem.init_full[key])}")
 
 
 def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,

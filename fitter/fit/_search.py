@@ -24,6 +24,7 @@ import numpy as np
 from ..bsdf.base import SurfaceHit
 from ..environment import lookup
 from ..material import Material, lobe_params
+from ._compile import FAST_XLA_OPTIONS
 
 #: About this many pixels enter the search.
 SEARCH_PIXELS = 2048
@@ -47,7 +48,7 @@ def _searcher(lobe, opts_items, env_type):
         return lobe.start_search.best(p, opts, hit, functools.partial(lookup, env_type, env),
                                       cost)
 
-    return jax.jit(run)
+    return jax.jit(run, compiler_options=FAST_XLA_OPTIONS)
 
 
 def searched(problem):
