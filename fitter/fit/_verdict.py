@@ -11,8 +11,13 @@ from ..bsdf.derived import settle
 from ..render import render_active
 from . import _adequacy, _discretisation
 from ._compile import jac_full
-from ._covariance import (covariance, degrees_of_freedom, intervals, residual_variance,
-                          scaled_jacobian)
+from ._covariance import (
+    covariance,
+    degrees_of_freedom,
+    intervals,
+    residual_variance,
+    scaled_jacobian,
+)
 from ._problem import Data, Spec, blocks_of, format_value, frame, robust, user_values
 from ._setup import Problem
 from ._solvers import solver_outcome
