@@ -247,7 +247,8 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
     """Trace the camera rays against the sphere and tabulate the lights.
 
     ``lighting``: the environment as light (``fitter.envlight.EnvLights``) or
-    None (the opaque lobes see the point/directional lights only).
+    None (the opaque lobes see the point/directional lights only); with a
+    ``sky`` of None the sun cells alone (no sky tabulation).
     """
     sph = scene.sphere
     if not sph.radius > 0:
@@ -300,18 +301,19 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
         sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
         rows, e_n, e_v, e_w = rows[ok], e_n[ok], e_v[ok], e_w[ok]
         det = lighting.detail or Detail()
-        order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
-        rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
-        e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
-        irr = np.asarray(sky_sum(jnp.asarray(e_nw.sum(-1)), node, frac, e_c))
-        e_irr = np.zeros((pixel_index.size, 3))
-        np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])
-    else:
+        if lighting.sky is not None:
+            order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
+            rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
+            e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
+            irr = np.asarray(sky_sum(jnp.asarray(e_nw.sum(-1)), node, frac, e_c))
+            e_irr = np.zeros((pixel_index.size, 3))
+            np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])
+    if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))
         e_cos = Cosines(*(np.zeros((0, 0)),) * 6)
         e_irr = np.zeros((pixel_index.size, 3))
-        sun = ()
+        sun = sun if lighting is not None else ()
     return Geometry(pixel_index, hit, weight, pos, normal, d_a, cos, light_weight, color,
                     background, background_image, rows, node, frac, e_c, e_cos, e_nw, e_irr,
                     sun)

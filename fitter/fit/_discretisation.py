@@ -5,24 +5,25 @@ environment lighting opaque lobes, the map as sun cells and a sky stencil
 (``fitter.envlight``). A fit matches *that* image to the target, so the
 model's discretisation error is an error of the parameters the residual does
 not show (it is absorbed). "k vs 2k": at the fitted parameters, render once
-with every discretisation refined through the public knobs -- 2k x 2k
-samples per pixel, the sky term at ``envlight.Detail.finer()`` (193 theta_o
-nodes, 4 x 8 lobe points per cell), sun cells of a quarter texel
-(``FINER_SUN``), a dielectric's internal bounces doubled
-(``finer_material``) -- with ``geometry.build_geometry``, and take the
-difference d = finer - fitted over the fitted pixels. Through the fit's
-linearisation,
+with the discretisation refined through the public knobs
+(``geometry.build_geometry``, ``envlight.env_lights(sun=...)``) -- 2k x 2k
+samples per pixel, a dielectric's internal bounces doubled
+(``finer_material``), and, separately (``finer_values``), sun cells of a
+quarter texel (``FINER_SUN``) -- and take the difference d = finer - fitted
+over the fitted pixels. Through the fit's linearisation,
 
     delta_z = (J^T W J)^-1 J^T W d
 
 is how far the parameters would move were the model the finer one; its outer
 product is added to the systematic covariance (a bias stated as an error).
-The sky stencil's cells themselves (``fitter.skystencil``) are the same in
-both models; their measured accuracy (``SKY_STENCIL_ACCURACY``) times the
-non-Lambert lobes' sky term is propagated the same way.
-Cost: one finer geometry of the scene, one render of the sampled fitted
-pixels and one of their sky term, two J^T d with the Jacobian the systematic
-part already computed (``benchmarks/discretisation_cost.py``).
+The sky term (``fitter.skystencil``) is not refined: at 2k its env samples
+triple and, at ``envlight.Detail.finer()``, its tabulation doubles (measured
+at 128^2 env_plastic: 52 s of a 72 s fit, peak RSS 4.8 GB, against 13 s and
+1.3 GB without). Its measured accuracy (``SKY_STENCIL_ACCURACY``) times the
+non-Lambert lobes' fitted sky term is propagated the same way instead.
+Cost: finer geometries without sky tabulation, renders of the sampled
+fitted pixels and of the sky term, two J^T d with the Jacobian the
+systematic part already computed (``benchmarks/discretisation_cost.py``).
 """
 
 from __future__ import annotations
@@ -47,15 +48,14 @@ MAX_SAMPLES = 2**23
 #: the probe: Phong e = 300's exponent 3.2 % low with whole-texel cells,
 #: 0.6 % with half, 0.3 % with quarter (``envlight``'s notes).
 FINER_SUN = (4, 16)
-#: What the finer render does not refine: the sky stencil's cells (the same
-#: in both models). Their measured accuracy, stated as that relative error of
+#: The sky stencil (not refined): its measured accuracy, stated as that relative error of
 #: the non-Lambert lobes' sky term (Lambert's is exact, rho/pi x irradiance):
 #: against a brute-force hemisphere quadrature Beckmann m = 0.1 (the
 #: narrowest shipped lobe's bound) is within 0.33 % up to 89.5 degrees
 #: (``tests/test_envlight_reference.py`` asserts 0.5 %), against Mitsuba at
 #: 4096 spp Torrance-Sparrow m = 0.1 relative RMSE 0.62 % over a 0.38 %
 #: noise floor, limb pixels +0.03 % (benchmarks/README.md, envlight). The
-#: default's whole error, so an upper bound of the cells' share.
+#: old stencil's 17 % at 89 degrees and 2 % limb error are gone.
 SKY_STENCIL_ACCURACY = 0.005
 
 #: Body pixels (away from highlights and the rim: a smooth model error) the
@@ -88,16 +88,12 @@ def _cast(a):
         else jnp.asarray(a)
 
 
-def finer_geometry(scene, material, base_dir):
-    """(Geometry, EnvData) of ``scene`` at the finer discretisation (float64 NumPy)."""
-    fine = scene.replace(supersampling=finer_supersampling(scene))
-    env64 = load_environment(scene.environment, base_dir)
-    lighting = None
-    if envlight.lit_by_environment(scene, material):
-        lighting = envlight.env_lights(scene.environment.type, np.asarray(env64.image),
-                                       np.asarray(env64.constant),
-                                       detail=envlight.Detail.finer(), sun=FINER_SUN)
-    return build_geometry(fine, scene.environment.type, env64, lighting), env64
+def _sun_only(scene, env64, sun):
+    """The environment's sun cells at ``sun`` = (cell, sub) and no sky term (the
+    ``lighting`` of ``geometry.build_geometry``), or None without one."""
+    lighting = envlight.env_lights(scene.environment.type, np.asarray(env64.image),
+                                   np.asarray(env64.constant), sun=sun)
+    return None if lighting is None else lighting._replace(sky=None)
 
 
 def sample_rows(labels) -> tuple[np.ndarray, np.ndarray]:
@@ -113,49 +109,95 @@ def sample_rows(labels) -> tuple[np.ndarray, np.ndarray]:
     return rows, weight
 
 
-def finer_values(problem, params, rows=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The fitted pixels by the finer model (``finer_geometry``).
-
-    Returns (values (P, 3), coverage (P,), sky (P, 3)): coverage is the share
-    of the pixel the finer samples see on the sphere (0: none, the pixel is
-    left out); sky the finer model's sky term of the opaque lobes other than
-    Lambert (``SKY_STENCIL_ACCURACY`` applies to it). ``params``: complete
-    parameters in user units; ``rows``: which fitted pixels (default all).
-    """
-    r = problem.renderer
-    scene, material = r.scene, r.material
-    geo, env64 = finer_geometry(scene, material, getattr(problem, "base_dir", None))
-    flat = np.asarray(r.pixel_index)[problem.rows]
-    if rows is not None:
-        flat = flat[rows]
+def _values(scene, material, env64, lighting, flat, params, env_type):
+    """(values (P, 3), coverage (P,)) of the pixels ``flat`` (flat indices) of
+    ``scene`` lit by its lights and ``lighting`` (``geometry.build_geometry``)."""
+    geo = build_geometry(scene, env_type, env64, lighting)
     index = np.asarray(geo.pixel_index)
     at = np.minimum(np.searchsorted(index, flat), max(index.size - 1, 0))
     found = index[at] == flat if index.size else np.zeros(flat.size, bool)
     sub = geo.subset(at[found])
-    dev = jax.tree_util.tree_map(_cast, sub)
-    env = jax.tree_util.tree_map(_cast, env64)
     sphere = (jnp.asarray(scene.sphere.center, jnp.float64),
               jnp.asarray(scene.sphere.radius, jnp.float64))
-    p64 = {k: jnp.asarray(v, jnp.float64) for k, v in params.items()}
     vals = np.zeros((flat.size, 3))
-    vals[found] = np.asarray(render_active(p64, dev, env, sphere,
-                                           material=finer_material(material),
-                                           env_type=r.env_type), dtype=np.float64)
+    vals[found] = np.asarray(render_active(
+        {k: jnp.asarray(v, jnp.float64) for k, v in params.items()},
+        jax.tree_util.tree_map(_cast, sub), jax.tree_util.tree_map(_cast, env64), sphere,
+        material=material, env_type=env_type), dtype=np.float64)
     coverage = np.zeros(flat.size)
     coverage[found] = np.asarray(sub.hit, dtype=np.float64) @ np.asarray(sub.sample_weight)
-    sky = np.zeros((flat.size, 3))
+    return vals, coverage
+
+
+def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, np.ndarray]:
+    """Values of the fitted pixels by the finer model, sky term excluded: compare
+    with ``coarse_without_sky``.
+
+    Each refinement alone, the differences summed (first order; together, the
+    quarter-texel sun at 2k samples tabulated 128 cells x 100 k samples at
+    128^2, 15 s and 2 GB): 2k samples with a dielectric's bounces doubled,
+    plus, under an environment lighting opaque lobes, the sun at
+    ``FINER_SUN`` minus the sun at the default cells, both at k.
+    Returns (values (P, 3), coverage (P,)): coverage is the share of the pixel
+    the finer samples see on the sphere (the sky term scales with it; 0: none,
+    the pixel is left out). ``params``: complete parameters in user units;
+    ``rows``: which fitted pixels (default all); ``coarse``: their fitted values
+    without the sky term (``coarse_without_sky``; default: rendered here).
+    """
+    r = problem.renderer
+    scene, material, env_type = r.scene, r.material, r.env_type
+    env64 = load_environment(scene.environment, getattr(problem, "base_dir", None))
+    flat = np.asarray(r.pixel_index)[problem.rows]
+    if rows is not None:
+        flat = flat[rows]
+    lit = envlight.lit_by_environment(scene, material)
+    sun = _sun_only(scene, env64, (envlight.SUN_CELL, envlight.SUN_SUB)) if lit else None
+    fine = scene.replace(supersampling=finer_supersampling(scene))
+    vals, coverage = _values(fine, finer_material(material), env64, sun, flat, params, env_type)
+    if sun is not None and sun.sun_dir.shape[0]:
+        finer_sun = _sun_only(scene, env64, FINER_SUN)
+        more = _values(scene, material, env64, finer_sun, flat, params, env_type)[0]
+        if coarse is None:
+            coarse = _values(scene, material, env64, sun, flat, params, env_type)[0]
+        vals = vals + more - coarse
+    return vals, coverage
+
+
+def _params(data, params):
+    return {k: jnp.asarray(v, data.target.dtype) for k, v in params.items()}
+
+
+def coarse_without_sky(data, params, material, env_type, model) -> np.ndarray:
+    """The fitted model's values (P, 3) without its sky term: ``model`` itself
+    when the environment lights no opaque lobe."""
+    geo = data.geometry
+    if not (geo.env_color.shape[0] and geo.env_color.shape[1]):
+        return np.asarray(model, dtype=np.float64)
+    empty = jnp.zeros((0, 0, 0), dtype=geo.env_color.dtype)
+    return np.asarray(render_active(_params(data, params), geo._replace(env_color=empty),
+                                    data.env, data.sphere, material=material,
+                                    env_type=env_type), dtype=np.float64)
+
+
+def sky_stencil_error(data, params, material, env_type) -> np.ndarray:
+    """A stated bound of the sky stencil's error (P, 3): ``SKY_STENCIL_ACCURACY``
+    times the fitted sky term of the opaque lobes other than Lambert (Lambert's
+    is exact, rho/pi x irradiance); zeros when the environment lights none."""
+    geo = data.geometry
     glossy = [lb.name for lb in material.lobe_objects if lb.kind == "brdf" and lb.name != "lambert"]
-    if glossy and np.asarray(sub.env_color).size:
-        dark = dev._replace(  # no lights, no sun, no background: the sky term alone
-            cosines=type(dev.cosines)(*(a[:0] for a in dev.cosines)),
-            light_weight=dev.light_weight[:0], light_color=dev.light_color[:0], sun=(),
-            background=jnp.zeros_like(dev.background))
-        opts = {k: v for k, v in material.options if k.split(".")[0] in glossy}
-        sky[found] = np.asarray(render_active(p64, dark, env, sphere,
-                                              material=Material.make(glossy, opts),
-                                              env_type=r.env_type), dtype=np.float64)
-        sky *= float(params.get(EXPOSURE_KEY, 1.0)) if material.exposure else 1.0
-    return vals, coverage, sky
+    if not (glossy and geo.env_color.shape[0] and geo.env_color.shape[1]):
+        return np.zeros(np.asarray(geo.background).shape)
+    dark = geo._replace(  # no lights, no sun, no background: the sky term alone
+        cosines=type(geo.cosines)(*(a[:0] for a in geo.cosines)),
+        light_weight=geo.light_weight[:0], light_color=geo.light_color[:0], sun=(),
+        background=jnp.zeros_like(geo.background))
+    opts = {k: v for k, v in material.options if k.split(".")[0] in glossy}
+    sky = np.asarray(render_active(_params(data, params), dark, data.env, data.sphere,
+                                   material=Material.make(glossy, opts), env_type=env_type),
+                     dtype=np.float64)
+    if material.exposure:
+        sky = sky * float(params[EXPOSURE_KEY])
+    return SKY_STENCIL_ACCURACY * sky
 
 
 def shift(J, d) -> np.ndarray:

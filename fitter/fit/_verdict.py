@@ -195,18 +195,26 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
                 np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300))))}
     t0 = time.perf_counter()
     rows, share = _discretisation.sample_rows(_adequacy.pixel_regions(data.geometry))
-    finer, coverage, sky = (np.zeros_like(model), np.zeros(model.shape[0]),
-                            np.zeros_like(model))
-    finer[rows], coverage[rows], sky[rows] = _discretisation.finer_values(problem, params, rows)
+    finer = np.zeros_like(model)
+    coverage = np.zeros(model.shape[0])
+    coarse = _discretisation.coarse_without_sky(data, params, spec.material, spec.env_type,
+                                                model)
+    finer[rows], coverage[rows] = _discretisation.finer_values(problem, params, rows,
+                                                               coarse[rows])
+    # The sky term (not refined) over the part of the pixel the finer samples
+    # see on the sphere: finer = finer lights + background + sky x coverage.
+    seen = np.asarray(data.geometry.hit, dtype=np.float64) @ np.asarray(
+        data.geometry.sample_weight, dtype=np.float64)
     covered = coverage > 0
     scale = np.zeros(model.shape[0])
     scale[rows] = share  # body pixels stand for their unrendered neighbours
-    w = np.asarray(data.weights, dtype=np.float64) * (covered * scale)[:, None]
-    diff = np.where(covered[:, None], finer - model, 0.0)
-    delta = _discretisation.shift(Js, (diff * w).reshape(-1))
-    # The sky stencil's cells, the same in both models: their measured accuracy.
+    w = np.asarray(data.weights, dtype=np.float64) * covered[:, None]
+    diff = finer + (model - coarse) * (coverage / np.maximum(seen, 1e-300))[:, None] - model
+    diff = np.where(covered[:, None], diff, 0.0)
+    delta = _discretisation.shift(Js, (diff * w * scale[:, None]).reshape(-1))
+    sky = _discretisation.sky_stencil_error(data, params, spec.material, spec.env_type)
     delta_sky = _discretisation.shift(
-        Js, (_discretisation.SKY_STENCIL_ACCURACY * sky * w).reshape(-1))
+        Js, (sky * np.asarray(data.weights, dtype=np.float64)).reshape(-1))
     cov_disc = np.outer(delta, delta) + np.outer(delta_sky, delta_sky)
     info["discretisation"] = {
         "supersampling": [problem.renderer.scene.supersampling,
