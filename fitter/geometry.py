@@ -243,12 +243,15 @@ def sun_samples(lighting, hit, normal, view, weight, e_rows, e_n, e_v, e_w):
                        lighting.sun_irradiance.sum(0, keepdims=True)))
 
 
-def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> Geometry:
+def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
+                   pixels=None) -> Geometry:
     """Trace the camera rays against the sphere and tabulate the lights.
 
     ``lighting``: the environment as light (``fitter.envlight.EnvLights``) or
     None (the opaque lobes see the point/directional lights only); with a
-    ``sky`` of None the sun cells alone (no sky tabulation).
+    ``sky`` of None the sun cells alone (no sky tabulation). ``pixels``: flat
+    indices (row * W + col) of the only pixels to make active (default all
+    that the sphere covers).
     """
     sph = scene.sphere
     if not sph.radius > 0:
@@ -274,6 +277,10 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
     background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
 
     active = hit_all.any(axis=2).reshape(-1)
+    if pixels is not None:
+        keep = np.zeros_like(active)
+        keep[np.asarray(pixels, dtype=np.int64)] = True
+        active &= keep
     pixel_index = np.nonzero(active)[0]
     hit = hit_all.reshape(h * w, k2)[pixel_index]
     o_a = o.reshape(h * w, k2, 3)[pixel_index]

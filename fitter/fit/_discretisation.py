@@ -112,7 +112,7 @@ def sample_rows(labels) -> tuple[np.ndarray, np.ndarray]:
 def _values(scene, material, env64, lighting, flat, params, env_type):
     """(values (P, 3), coverage (P,)) of the pixels ``flat`` (flat indices) of
     ``scene`` lit by its lights and ``lighting`` (``geometry.build_geometry``)."""
-    geo = build_geometry(scene, env_type, env64, lighting)
+    geo = build_geometry(scene, env_type, env64, lighting, pixels=flat)
     index = np.asarray(geo.pixel_index)
     at = np.minimum(np.searchsorted(index, flat), max(index.size - 1, 0))
     found = index[at] == flat if index.size else np.zeros(flat.size, bool)
