@@ -158,8 +158,10 @@ class Pyramid:
 
 
 # ----------------------------------------------------------------------------- the sun
-def split_sun(img: np.ndarray):
-    """(sun_dir (Ls, 3), sun_irradiance (Ls, 3), sky image): the map = sky + sun excess."""
+def split_sun(img: np.ndarray, cell: int = SUN_CELL, sub: int = SUN_SUB):
+    """(sun_dir (Ls, 3), sun_irradiance (Ls, 3), sky image): the map = sky + sun excess.
+
+    ``cell``: sun cells of 1 / cell texel; ``sub``: sub-samples per texel (a multiple of cell)."""
     img = np.asarray(img, dtype=np.float64)
     h, w = img.shape[:2]
     lum = img @ _LUM
@@ -178,9 +180,9 @@ def split_sun(img: np.ndarray):
         nb = [(i, j) for i in rs for j in cs if not mask[i, j]]
         sky[r, c] = np.mean([img[i, j] for i, j in nb], axis=0) if nb else 0.0
     excess = img - sky
-    # Fine lattice (SUN_SUB per texel) over each sun texel's bilinear support.
+    # Fine lattice (``sub`` per texel) over each sun texel's bilinear support.
     rows, cols = np.nonzero(mask)
-    k = SUN_SUB
+    k = sub
     fine = set()
     for r, c in zip(rows, cols):
         for fr in range((r - 1) * k, (r + 1) * k):
@@ -195,8 +197,8 @@ def split_sun(img: np.ndarray):
     dirs = uv_to_dir(u, v)
     e = rad * d_omega[:, None]
     wl = e @ _LUM
-    cell = (fr // (k // SUN_CELL)) * (w * SUN_CELL) + fc // (k // SUN_CELL)
-    ids, inv = np.unique(cell, return_inverse=True)
+    cell_id = (fr // (k // cell)) * (w * cell) + fc // (k // cell)
+    ids, inv = np.unique(cell_id, return_inverse=True)
     irr = np.zeros((ids.size, 3))
     np.add.at(irr, inv, e)
     cen = np.zeros((ids.size, 3))
@@ -207,12 +209,13 @@ def split_sun(img: np.ndarray):
 
 
 def env_lights(env_type: str, image: np.ndarray, constant: np.ndarray,
-               detail: Detail | None = None) -> EnvLights | None:
+               detail: Detail | None = None, sun: tuple = (SUN_CELL, SUN_SUB)) -> EnvLights | None:
     """The split environment, or None for a black one; ``detail``: the sky term's
-    discretisation (default ``Detail()``), which ``geometry.build_geometry`` uses."""
+    discretisation (default ``Detail()``), which ``geometry.build_geometry`` uses;
+    ``sun``: (cell, sub) of ``split_sun`` (the sun's discretisation)."""
     detail = detail or Detail()
     if env_type == "envmap":
-        sun_dir, sun_irr, sky = split_sun(image)
+        sun_dir, sun_irr, sky = split_sun(image, *sun)
         return EnvLights(sun_dir, sun_irr, Pyramid(sky), detail)
     rad = np.asarray(constant, dtype=np.float64)
     if env_type != "constant" or not np.any(rad > 0):

@@ -244,11 +244,15 @@ def sun_samples(lighting, hit, normal, view, weight, e_rows, e_n, e_v, e_w):
                        lighting.sun_irradiance.sum(0, keepdims=True)))
 
 
-def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> Geometry:
+def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
+                   pixels=None) -> Geometry:
     """Trace the camera rays against the sphere and tabulate the lights.
 
     ``lighting``: the environment as light (``fitter.envlight.EnvLights``) or
-    None (the opaque lobes see the point/directional lights only).
+    None (the opaque lobes see the point/directional lights only); with a
+    ``sky`` of None the sun cells alone (no sky tabulation). ``pixels``: flat
+    indices (row * W + col) of the only pixels to make active (default all
+    that the sphere covers).
     """
     sph = scene.sphere
     if not sph.radius > 0:
@@ -274,6 +278,10 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
     background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
 
     active = hit_all.any(axis=2).reshape(-1)
+    if pixels is not None:
+        keep = np.zeros_like(active)
+        keep[np.asarray(pixels, dtype=np.int64)] = True
+        active &= keep
     pixel_index = np.nonzero(active)[0]
     hit = hit_all.reshape(h * w, k2)[pixel_index]
     o_a = o.reshape(h * w, k2, 3)[pixel_index]
@@ -301,18 +309,19 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None) -> 
         sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
         rows, e_n, e_v, e_w = rows[ok], e_n[ok], e_v[ok], e_w[ok]
         det = lighting.detail or Detail()
-        order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
-        rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
-        e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
-        irr = np.asarray(sky_sum(jnp.asarray(e_nw.sum(-1)), node, frac, e_c))
-        e_irr = np.zeros((pixel_index.size, 3))
-        np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])
-    else:
+        if lighting.sky is not None:
+            order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
+            rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
+            e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
+            irr = np.asarray(sky_sum(jnp.asarray(e_nw.sum(-1)), node, frac, e_c))
+            e_irr = np.zeros((pixel_index.size, 3))
+            np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])
+    if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))
         e_cos = Cosines(*(np.zeros((0, 0)),) * 6)
         e_irr = np.zeros((pixel_index.size, 3))
-        sun = ()
+        sun = sun if lighting is not None else ()
     return Geometry(pixel_index, hit, weight, pos, normal, d_a, cos, light_weight, color,
                     background, background_image, rows, node, frac, e_c, e_cos, e_nw, e_irr,
                     sun)

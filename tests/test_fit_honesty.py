@@ -136,3 +136,33 @@ def test_discretisation_error_is_propagated_into_the_stated_error():
         assert np.all(err < 1.5 * np.asarray(r.stderr[k])), (k, err, r.stderr[k])
         assert np.all(np.asarray(r.stderr_disc[k]) > 0.5 * err), (k, err, r.stderr_disc[k])
     assert worst > 4.0  # measured 5.3: the statistical part alone would be over-confident
+
+
+def test_an_environment_sun_marks_highlight_pixels(tmp_path):
+    """An env-only scene (no scene lights) with a sun: the sun's cells are
+    ``Geometry.sun`` entries, not rows of ``light_weight``; the highlight region
+    must still be found there (the discretisation term renders it wholly). The
+    reference: the mirror direction of the sun's centroid on the sphere."""
+    import jax.numpy as jnp
+
+    from fitter.imageio import write_image
+    from fitter.render import cached_renderer
+
+    img = np.full((16, 32, 3), 0.3)
+    img[6, 12] = [3000.0, 2900.0, 2500.0]  # a sun above the horizon, in front
+    path = str(tmp_path / "sun.exr")
+    write_image(path, img)
+    scene = fitter.Scene(width=32, height=32, supersampling=2,
+                         environment=fitter.Environment(type="envmap", file=path))
+    mat = fitter.Material.from_params({"torrance_sparrow.m": 0.1})
+    r = cached_renderer(scene, mat, jnp.dtype(jnp.float64), None)
+    geo = r.geometry
+    assert not np.asarray(geo.light_weight).shape[0] and len(geo.sun)
+    label = _adequacy.pixel_regions(geo)
+    high = np.nonzero(label == 1)[0]
+    assert high.size > 0
+    # Those pixels' normals lie near the half vector of the sun and the view.
+    idx, cos, _, _ = geo.sun[0]
+    peak = np.asarray(idx)[np.argmax(np.max(np.asarray(cos.cos_h), axis=0))]
+    assert np.max(np.asarray(cos.cos_h)) > np.cos(_adequacy.HIGHLIGHT_ANGLE)
+    assert peak in high or label[peak] == 2

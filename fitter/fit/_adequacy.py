@@ -20,7 +20,7 @@ Two pieces, both read from the residuals r and the Jacobian J at the solution:
   Cramer-Rao errors).
 * Residual energy per region of the sphere defined by its geometry:
   ``highlight`` (pixels whose normal is within ``HIGHLIGHT_ANGLE`` of a
-  light's half vector), ``rim`` (pixels on the silhouette or seen at a
+  light's half vector, the scene's lights and an environment's sun cells), ``rim`` (pixels on the silhouette or seen at a
   grazing angle, cos_o < ``RIM_COS``) and ``body`` (the rest), each as RMSE
   over the noise level, plus the lag-1 correlation of neighbouring residuals
   (about 0 for white noise, near 1 for a smooth model error).
@@ -66,6 +66,9 @@ def pixel_regions(geometry) -> np.ndarray:
     else:  # no lights: the view cosine from the normal and the camera ray
         cos_v = -np.sum(np.asarray(geometry.normal) * np.asarray(geometry.ray_dir), axis=-1)
         grazing = np.where(hit, cos_v, 1.0).min(axis=1) < RIM_COS
+    for index, cos, weight, _ in getattr(geometry, "sun", ()):  # an environment's sun cells
+        near = (np.asarray(cos.cos_h) >= np.cos(HIGHLIGHT_ANGLE)) & (np.asarray(weight) > 0)
+        label[np.asarray(index)[near.any(axis=0)]] = 1
     label[grazing | ~hit.all(axis=1)] = 2
     return label
 

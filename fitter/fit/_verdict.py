@@ -11,8 +11,13 @@ from ..bsdf.derived import settle
 from ..render import render_active
 from . import _adequacy, _discretisation
 from ._compile import jac_full
-from ._covariance import (covariance, degrees_of_freedom, intervals, residual_variance,
-                          scaled_jacobian)
+from ._covariance import (
+    covariance,
+    degrees_of_freedom,
+    intervals,
+    residual_variance,
+    scaled_jacobian,
+)
 from ._problem import Data, Spec, blocks_of, format_value, frame, robust, user_values
 from ._setup import Problem
 from ._solvers import solver_outcome
@@ -192,9 +197,10 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     rows, share = _discretisation.sample_rows(_adequacy.pixel_regions(data.geometry))
     finer = np.zeros_like(model)
     coverage = np.zeros(model.shape[0])
-    finer[rows], coverage[rows] = _discretisation.finer_values(problem, params, rows)
     coarse = _discretisation.coarse_without_sky(data, params, spec.material, spec.env_type,
                                                 model)
+    finer[rows], coverage[rows] = _discretisation.finer_values(problem, params, rows,
+                                                               coarse[rows])
     # The sky term (not refined) over the part of the pixel the finer samples
     # see on the sphere: finer = finer lights + background + sky x coverage.
     seen = np.asarray(data.geometry.hit, dtype=np.float64) @ np.asarray(
@@ -206,9 +212,9 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     diff = finer + (model - coarse) * (coverage / np.maximum(seen, 1e-300))[:, None] - model
     diff = np.where(covered[:, None], diff, 0.0)
     delta = _discretisation.shift(Js, (diff * w * scale[:, None]).reshape(-1))
-    sky = _discretisation.sky_quadrature(data, params, spec.material, spec.env_type, model,
-                                         coarse)
-    delta_sky = _discretisation.shift(Js, (sky * w).reshape(-1))
+    sky = _discretisation.sky_stencil_error(data, params, spec.material, spec.env_type)
+    delta_sky = _discretisation.shift(
+        Js, (sky * np.asarray(data.weights, dtype=np.float64)).reshape(-1))
     cov_disc = np.outer(delta, delta) + np.outer(delta_sky, delta_sky)
     info["discretisation"] = {
         "supersampling": [problem.renderer.scene.supersampling,
