@@ -65,12 +65,20 @@ def film_samples(scene: Scene):
     return x.reshape(h, w, k * k), y.reshape(h, w, k * k), weight
 
 
-def camera_rays(scene: Scene):
-    """Ray origins and unit directions, each (H, W, k*k, 3), float64; checks the scene first."""
+def camera_rays(scene: Scene, pixels=None):
+    """Ray origins and unit directions, each (H, W, k*k, 3), float64; checks the scene first.
+
+    ``pixels``: flat indices (row * W + col), sorted; then only their rays,
+    each (P, 1, k*k, 3) (a finer model of a few pixels need not trace them all).
+    """
     check_scene(scene)
     cam = scene.camera
     fwd, right, up = camera_frame(scene)
     x, y, _ = film_samples(scene)
+    if pixels is not None:
+        kk = x.shape[-1]
+        x = x.reshape(-1, kk)[pixels][:, None]
+        y = y.reshape(-1, kk)[pixels][:, None]
     origin = np.asarray(cam.origin, dtype=np.float64)
     if cam.type == "perspective":
         t = np.tan(np.radians(cam.fov) / 2.0)

@@ -264,7 +264,8 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
         if isinstance(light, PointLight):
             if np.linalg.norm(np.subtract(light.position, sph.center)) <= sph.radius:
                 raise SceneError(f"point light at {light.position} lies inside the sphere")
-    o, d = camera_rays(scene)
+    sel = None if pixels is None else np.unique(np.asarray(pixels, dtype=np.int64))
+    o, d = camera_rays(scene, sel)  # (H, W, K, 3), or (P, 1, K, 3) of the pixels asked for
     _, _, weight = film_samples(scene)
     h, w, k2, _ = d.shape
     t = intersect_sphere(o, d, sph.center, sph.radius)
@@ -278,11 +279,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
 
     active = hit_all.any(axis=2).reshape(-1)
-    if pixels is not None:
-        keep = np.zeros_like(active)
-        keep[np.asarray(pixels, dtype=np.int64)] = True
-        active &= keep
-    pixel_index = np.nonzero(active)[0]
+    pixel_index = np.nonzero(active)[0]  # rows of the traced arrays
     hit = hit_all.reshape(h * w, k2)[pixel_index]
     o_a = o.reshape(h * w, k2, 3)[pixel_index]
     d_a = d.reshape(h * w, k2, 3)[pixel_index]
@@ -294,6 +291,10 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     miss_a = miss_rad.reshape(h * w, k2, 3)[pixel_index]
     background = np.einsum("pkc,k->pc", np.where(hit[..., None], 0.0, miss_a), weight)
 
+    if sel is not None:  # back to the film's flat indices
+        full = np.zeros((scene.width * scene.height, 3))
+        full[sel] = background_image
+        background_image, pixel_index = full, sel[pixel_index]
     light_dir, falloff, color = light_terms(scene.lights, pos)
     cos = Cosines(*(np.asarray(a) for a in cosines(normal, light_dir, -d_a)))
     lit = hit & (cos.cos_i > 0) & (cos.cos_o > 0)
@@ -303,7 +304,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     if lighting is not None:
         from .envlight import Detail, node_geometry, sky_sum, sky_table
 
-        t_h = np.where(hit, t.reshape(h * w, k2)[pixel_index], 0.0)
+        t_h = t_a
         rows, e_n, e_v, e_w = env_samples(scene, hit, t_h, o_a, d_a, weight, pixel_index)
         ok = np.sum(e_n * e_v, -1) > 0
         sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)

@@ -143,3 +143,31 @@ def test_a_finer_discretisation_is_a_knob_and_changes_little(sun_probe):
     full = np.asarray(r.geometry.hit).all(1)
     rel = np.abs(out[1] / out[0] - 1)[full]
     assert 0 < rel.mean() < 2e-3 and rel.max() < 2e-2, (rel.mean(), rel.max())
+
+
+def test_geometry_of_a_pixel_subset_equals_those_pixels_of_the_whole(sun_probe):
+    # build_geometry(pixels=...) traces only the pixels asked for (the finer model of
+    # fitter.fit._discretisation); reference: the same rows of the whole image's geometry.
+    from fitter.geometry import build_geometry
+    from fitter.render import render_active
+
+    scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe))
+    mat = Material.from_params({"lambert.rho_d": 0.5, "torrance_sparrow.m": 0.1,
+                                "torrance_sparrow.eta": 1.5})
+    r = cached_renderer(scene, mat, jnp.dtype(jnp.float64), None)
+    env = jax.tree_util.tree_map(np.asarray, r.env)
+    lighting = envlight.env_lights("envmap", env.image, env.constant)
+    whole = build_geometry(scene, "envmap", env, lighting)
+    picked = np.asarray(whole.pixel_index)[::7]
+    part = build_geometry(scene, "envmap", env, lighting, pixels=picked[::-1])
+    np.testing.assert_array_equal(part.pixel_index, picked)
+    rows = np.arange(0, len(whole.pixel_index), 7)
+    for name in ("hit", "position", "normal", "ray_dir", "background", "env_irradiance"):
+        np.testing.assert_array_equal(getattr(part, name), getattr(whole, name)[rows], name)
+    np.testing.assert_array_equal(part.background_image[picked], whole.background_image[picked])
+
+    def values(geo):
+        geo = jax.tree_util.tree_map(jnp.asarray, geo)
+        return np.asarray(render_active(r.params({}), geo, r.env, r.sphere, material=mat,
+                                        env_type="envmap"))
+    np.testing.assert_allclose(values(part), values(whole)[rows], rtol=1e-12, atol=1e-15)
