@@ -231,11 +231,9 @@ class _Log:
 
     @contextlib.contextmanager
     def stage(self, text: str):
-        """A spinner with the elapsed seconds while the stage runs, then its time.
-
-        Yields ``note(line)``: shows ``line`` (the stage's progress, e.g. a
-        start's steps and cost) after the stage's text on the spinner line.
-        """
+        """A spinner with the elapsed seconds while the stage runs, then its time;
+        yields ``note(line)``, which shows ``line`` (the stage's progress, e.g. a
+        start's steps and cost) after the stage's text on the spinner line."""
         from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
         _check_interrupt()
