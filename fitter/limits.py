@@ -24,9 +24,10 @@ MAX_SPP = 1 << 16
 BASE_BYTES = 0.6e9
 BYTES_PER_SAMPLE = 350.0
 #: Extra fit memory per pixel when an environment lights opaque lobes (its
-#: per-pixel cell stencil, ``fitter.envlight``): peak RSS 4.5-7.6 GB at 128^2
-#: (env_plastic, env_point), i.e. up to 4.6e5 bytes a pixel.
-ENV_BYTES_PER_PIXEL = 4.6e5
+#: sky table, ``fitter.envlight``): peak RSS 1.6 GB at 128^2 (env_plastic, CLI
+#: fit with the discretisation term), ~55 kB a pixel above the rest; twice that
+#: for a margin.
+ENV_BYTES_PER_PIXEL = 1.1e5
 #: Share of the machine's available memory a fit may plan to use.
 MEMORY_SHARE = 0.8
 

@@ -72,11 +72,13 @@ def test_supersampling_and_memory_are_checked_with_an_estimate(monkeypatch):
     with pytest.raises(limits.ResourceError, match=r"needs about 94\.\d GB .* 24\.0 GB"):
         limits.check_fit(4096, 4096, 4, 1, where="job.toml")
     limits.check_fit(128, 128, 4, 8)
-    # An environment lighting opaque lobes costs ~0.46 MB a pixel more (measured 7.6 GB
-    # peak at 128^2): 256^2 then needs ~31 GB and is refused, not OOM-killed.
-    limits.check_fit(256, 256, 4, 1)
+    # An environment lighting opaque lobes costs ~0.11 MB a pixel more (measured 1.6 GB
+    # peak at 128^2, with a 2x margin): 512^2 then needs ~31 GB and is refused, not
+    # OOM-killed, where the same film without it (~2 GB) passes.
+    limits.check_fit(512, 512, 4, 1)
+    limits.check_fit(256, 256, 4, 1, env_lit=True)
     with pytest.raises(limits.ResourceError, match="lit by its environment"):
-        limits.check_fit(256, 256, 4, 1, where="job.toml", env_lit=True)
+        limits.check_fit(512, 512, 4, 1, where="job.toml", env_lit=True)
 
 
 def test_synth_and_validate_spp_are_capped(small, tmp_path, capsys):
