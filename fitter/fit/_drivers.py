@@ -132,7 +132,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     if n_starts == 1 and identifiability:
         eig, along = weak_direction(problem.spec, r_factor(R))
         why, extra = None, np.zeros((0, problem.spec.n))
-        # Not a valley locally: profile the cost along it (at a minimum only).
+        # Not a valley locally: profile the cost (at a minimum only).
         if eig >= WEAK_EIG and start_status(int(codes[best]), zs[best],
                                             costs[best]) == "converged":
             why, extra, _ = weak_profile(problem.spec, data, zs[best], r_factor(R), r,
@@ -144,7 +144,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                 problem, z0s, data, say, "weakly identified: ")
             t_compile += tc
             found = (f"correlation eigenvalue {eig:.2g} < {WEAK_EIG:g}" if not why else
-                     f"the cost along the weakest direction shows {why}")
+                     f"the cost profile (weakest direction, each parameter's) shows {why}")
             note = (f"weakly identified at the first solution ({found}, along "
                     f"{', '.join(along)}): solved from {len(z0s)} starts to check for a "
                     "valley or another minimum")

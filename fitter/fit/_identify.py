@@ -169,12 +169,18 @@ PROFILE_FLAT = 0.25
 
 
 def profile_points(spec: Spec, z, J, s2: float):
-    """Points along the weakest direction of the covariance at ``z``: [(t, z_t)].
+    """Points along the weakest direction of the covariance at ``z``, then
+    along each coordinate's own profile direction: [(t, z_t)].
 
-    The direction is the correlation matrix's smallest eigenvector v scaled
-    by the standard errors D (a step a D v raises chi^2 by a^2 / w, w its
-    eigenvalue, were the cost quadratic), so z_t = z + t sqrt(w) D v is t
-    stated errors out along it.
+    The weakest direction is the correlation matrix's smallest eigenvector v
+    scaled by the standard errors D (a step a D v raises chi^2 by a^2 / w, w
+    its eigenvalue, were the cost quadratic), so z_t = z + t sqrt(w) D v is t
+    stated errors out along it. Coordinate i's profile direction C e_i / d_i
+    moves it by its standard error d_i with the others at their conditional
+    best, raising chi^2 by 1 (were the cost quadratic): it checks the stated
+    error of each parameter itself. Measured at m = 1e-3, 32^2 (sub-pixel
+    highlight): the weakest direction (eigenvalue 0.86) rose as quadratic,
+    while eta = 1.0017 +- 0.095 had another fit at 1.32 (chi^2 +0.3).
     """
     J = np.asarray(J, dtype=np.float64)
     if J.shape[1] < 1 or not np.all(np.isfinite(J)) or not s2 > 0:
@@ -184,18 +190,19 @@ def profile_points(spec: Spec, z, J, s2: float):
         return []
     d = np.sqrt(np.maximum(np.diag(cov), 1e-300))
     w, v = np.linalg.eigh(cov / np.outer(d, d))
-    step = np.sqrt(max(w[0], 0.0)) * d * v[:, 0]
     if np.any(frame(spec, z)[3]):  # a value at its bound: its coordinate is not z
         return []
+    steps = [np.sqrt(max(w[0], 0.0)) * d * v[:, 0]] + [cov[:, i] / d[i] for i in range(len(d))]
     out = []
-    for t in PROFILE_T:
-        for sign in (1.0, -1.0):
-            dz = sign * t * step
-            big = np.max(np.abs(dz))
-            if big > PROFILE_MAX_STEP:
-                dz = dz * (PROFILE_MAX_STEP / big)
-            out.append((sign * t * min(1.0, PROFILE_MAX_STEP / max(big, 1e-300)),
-                        np.asarray(z, dtype=np.float64) + dz))
+    for step in steps:
+        for t in PROFILE_T:
+            for sign in (1.0, -1.0):
+                dz = sign * t * step
+                big = np.max(np.abs(dz))
+                if big > PROFILE_MAX_STEP:
+                    dz = dz * (PROFILE_MAX_STEP / big)
+                out.append((sign * t * min(1.0, PROFILE_MAX_STEP / max(big, 1e-300)),
+                            np.asarray(z, dtype=np.float64) + dz))
     return out
 
 
