@@ -55,6 +55,12 @@ def jacobian_full(spec: Spec, z, data):
     return jax.jacfwd(lambda z: (residuals(z, data, spec),) * 2, has_aux=True)(z)
 
 
+def residuals_at(spec: Spec, zs, data):
+    """Residuals (k, N) at each point of ``zs`` (k, n), one point at a time
+    (``lax.map``: memory of one residual evaluation, no Jacobian)."""
+    return jax.lax.map(lambda z: residuals(z, data, spec), zs)
+
+
 def gauss_newton_step(spec: Spec, z, data):
     """At ``z``: (R (n, n), r (N,), J (N, n), the Gauss-Newton step dz (n,), cost).
 
@@ -134,7 +140,8 @@ def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
 
     ``kind``: ``"solve"`` (multi-start solve of one target), ``"batch"`` (one
     start per stacked target), ``"jacres"`` (``jacobian_r``), ``"jacfull"``
-    (``jacobian_full``) or ``"gauss_newton"`` (``gauss_newton_step``).
+    (``jacobian_full``), ``"gauss_newton"`` (``gauss_newton_step``) or
+    ``"residuals"`` (``residuals_at``).
     ``once``: the code runs once on few pixels: compiled with ``ONCE_XLA_OPTIONS``.
     """
     shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
@@ -149,6 +156,8 @@ def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
         f = functools.partial(jacobian_full, spec)
     elif kind == "gauss_newton":
         f = functools.partial(gauss_newton_step, spec)
+    elif kind == "residuals":
+        f = functools.partial(residuals_at, spec)
     else:  # Jacobian (as its R factor in float64) and residuals in one pass
         f = functools.partial(jacobian_r, spec)
     # optimistix creates some constants (e.g. LM's damping) as Python floats, which
@@ -157,7 +166,7 @@ def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
     t0 = time.perf_counter()
     with jax.enable_x64(not single):
         options = (ONCE_XLA_OPTIONS if once else FAST_XLA_OPTIONS
-                   if kind in ("jacres", "jacfull", "gauss_newton") else SOLVE_XLA_OPTIONS)
+                   if kind in ("jacres", "jacfull", "gauss_newton", "residuals") else SOLVE_XLA_OPTIONS)
         exe = compile_cached(f, args, repr(key), options)
     _COMPILED[key] = exe
     return exe, time.perf_counter() - t0
@@ -174,6 +183,15 @@ def jac_res(spec: Spec, z, data, once: bool = False):
     exe, tc = compiled("jacres", spec, (z, data), once=once)
     R, r = exe(z, data)
     return r_factor(R), np.asarray(r, dtype=np.float64), tc
+
+
+def costs_at(spec: Spec, zs, data) -> np.ndarray:
+    """Half the sum of squared residuals (k,) at each point of ``zs`` (k, n),
+    summed in float64 on the host whatever the fit's dtype."""
+    zs = jnp.asarray(zs, dtype=data.target.dtype)
+    exe, _ = compiled("residuals", spec, (zs, data))
+    r = np.asarray(exe(zs, data), dtype=np.float64)
+    return 0.5 * np.sum(r * r, axis=1)
 
 
 #: The last solution's whole Jacobian (``remember_jacobian``); one only, and

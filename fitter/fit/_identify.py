@@ -236,12 +236,13 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
     """The cost profile along the weakest direction of a one-start fit:
     (why several starts are needed or None, start points (k, n), seconds).
 
-    ``J``: the Jacobian's R factor at ``z``, ``r`` the residuals there. Each
-    point costs one residual evaluation (``jac_res``, compiled once).
+    ``J``: the Jacobian's R factor at ``z``, ``r`` the residuals there. The
+    points cost one residual evaluation each, in one compiled call
+    (``_compile.costs_at``; no Jacobian).
     """
     import time
 
-    from ._compile import jac_res
+    from ._compile import costs_at
     from ._covariance import residual_variance
 
     t0 = time.perf_counter()
@@ -249,9 +250,7 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
     s2 = residual_variance(noise_sigma, data, r, spec)
     cost = 0.5 * float(r @ r)
     points = profile_points(spec, z, J, s2)
-    evaluated = []
-    for t, zt in points:
-        rt = jac_res(spec, zt, data)[1]
-        evaluated.append((t, zt, 0.5 * float(rt @ rt)))
+    costs = costs_at(spec, np.stack([zt for _, zt in points]), data) if points else []
+    evaluated = [(t, zt, float(c)) for (t, zt), c in zip(points, costs)]
     why, starts = profile_verdict(s2, cost, evaluated)
     return why, np.asarray(starts).reshape(-1, np.size(z)), time.perf_counter() - t0
