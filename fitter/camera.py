@@ -46,23 +46,29 @@ def pixel_rule(k: int, rule: str):
                      + ", ".join(repr(r) for r in PIXEL_RULES))
 
 
-def film_samples(scene: Scene):
+def film_samples(scene: Scene, pixels=None):
     """Film coordinates and weights of the k x k sub-pixel samples of every pixel.
 
     Returns:
         (x, y, weight): x, y of shape (H, W, k*k), x in [-1, 1] left to
         right, y in [-H/W, H/W] bottom to top; weight (k*k,) sums to 1.
+        ``pixels``: flat indices (row * W + col); then x, y of those pixels
+        only, each (P, 1, k*k).
     """
     k, w, h = scene.supersampling, scene.width, scene.height
     sub, wt = pixel_rule(k, scene.pixel_rule)
-    cols = (np.arange(w)[:, None] + sub[None, :])  # (W, k)
-    rows = (np.arange(h)[:, None] + sub[None, :])  # (H, k)
-    sx = np.broadcast_to(cols[None, :, None, :], (h, w, k, k))
-    sy = np.broadcast_to(rows[:, None, :, None], (h, w, k, k))
+    if pixels is None:
+        r, c = np.arange(h)[:, None], np.arange(w)[None, :]  # (H, 1), (1, W)
+    else:
+        r, c = np.divmod(np.asarray(pixels, dtype=np.int64), w)
+        r, c = r[:, None], c[:, None]  # (P, 1) each
+    # Sample index ky * k + kx, as camera_rays and the weights expect.
+    sx = np.broadcast_to((c[..., None, None] + sub[None, :]), (*r.shape[:1], c.shape[1], k, k))
+    sy = np.broadcast_to((r[..., None, None] + sub[:, None]), (*r.shape[:1], c.shape[1], k, k))
     x = 2.0 * sx / w - 1.0
     y = (1.0 - 2.0 * sy / h) * (h / w)
     weight = (wt[:, None] * wt[None, :]).reshape(k * k)
-    return x.reshape(h, w, k * k), y.reshape(h, w, k * k), weight
+    return x.reshape(*x.shape[:2], k * k), y.reshape(*y.shape[:2], k * k), weight
 
 
 def camera_rays(scene: Scene, pixels=None):
@@ -74,11 +80,7 @@ def camera_rays(scene: Scene, pixels=None):
     check_scene(scene)
     cam = scene.camera
     fwd, right, up = camera_frame(scene)
-    x, y, _ = film_samples(scene)
-    if pixels is not None:
-        kk = x.shape[-1]
-        x = x.reshape(-1, kk)[pixels][:, None]
-        y = y.reshape(-1, kk)[pixels][:, None]
+    x, y, _ = film_samples(scene, pixels)
     origin = np.asarray(cam.origin, dtype=np.float64)
     if cam.type == "perspective":
         t = np.tan(np.radians(cam.fov) / 2.0)
