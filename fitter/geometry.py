@@ -266,7 +266,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
                 raise SceneError(f"point light at {light.position} lies inside the sphere")
     sel = None if pixels is None else np.unique(np.asarray(pixels, dtype=np.int64))
     o, d = camera_rays(scene, sel)  # (H, W, K, 3), or (P, 1, K, 3) of the pixels asked for
-    _, _, weight = film_samples(scene)
+    weight = film_samples(scene, np.zeros(1, np.int64))[2]  # (K,): the same for every pixel
     h, w, k2, _ = d.shape
     t = intersect_sphere(o, d, sph.center, sph.radius)
     hit_all = np.isfinite(t)
