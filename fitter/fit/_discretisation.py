@@ -54,8 +54,7 @@ FINER_SUN = (4, 16)
 #: narrowest shipped lobe's bound) is within 0.33 % up to 89.5 degrees
 #: (``tests/test_envlight_reference.py`` asserts 0.5 %), against Mitsuba at
 #: 4096 spp Torrance-Sparrow m = 0.1 relative RMSE 0.62 % over a 0.38 %
-#: noise floor, limb pixels +0.03 % (benchmarks/README.md, envlight). The
-#: old stencil's 17 % at 89 degrees and 2 % limb error are gone.
+#: noise floor, limb pixels +0.03 % (benchmarks/README.md, envlight).
 SKY_STENCIL_ACCURACY = 0.005
 
 #: Body pixels (away from highlights and the rim: a smooth model error) the
