@@ -27,8 +27,9 @@ import os
 import re
 import subprocess
 import sys
-import tempfile
 import time
+
+import _trees
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CASES = ("plastic 256^2", "dielectric 128^2")
@@ -116,13 +117,7 @@ def main(argv=None) -> int:
     if args.worker:
         print(json.dumps(worker(args.worker)))
         return 0
-    trees = [("after", ROOT)]
-    if args.before:
-        tmp = tempfile.mkdtemp(prefix="fitter-compile-")
-        archive = subprocess.run(["git", "-C", ROOT, "archive", args.before], check=True,
-                                 capture_output=True).stdout
-        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
-        trees.insert(0, (f"before ({args.before})", tmp))
+    trees = _trees.trees(args.before, "fitter-compile-")
     records: dict = {}
     for _ in range(args.repeat):
         for case in args.cases:

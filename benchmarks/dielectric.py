@@ -29,8 +29,9 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
 import time
+
+import _trees
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIG = "configs/dielectric.toml"
@@ -112,13 +113,7 @@ def main(argv=None) -> int:
         print(json.dumps(worker(*args.worker, args.fits, args.mitsuba)))
         return 0
 
-    trees = [("after", ROOT)]
-    if args.before:
-        tmp = tempfile.mkdtemp(prefix="fitter-dielectric-")
-        archive = subprocess.run(["git", "-C", ROOT, "archive", args.before], check=True,
-                                 capture_output=True).stdout
-        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
-        trees.insert(0, (f"before ({args.before})", tmp))
+    trees = _trees.trees(args.before, "fitter-dielectric-")
     records: dict = {}
     for rep in range(args.repeat):
         for case in args.cases:
