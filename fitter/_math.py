@@ -24,6 +24,12 @@ def to_device(a, dtype=None):
     return jax.device_put(np.asarray(a, dtype=dtype))
 
 
+def floats(v):
+    """``v`` (number or array) as a Python float, or a flat list of floats (for JSON)."""
+    a = np.asarray(v, dtype=np.float64)
+    return float(a) if a.ndim == 0 else [float(x) for x in a.reshape(-1)]
+
+
 def dot(a, b):
     """Dot product over the last axis, keeping no axis: (..., 3) x (..., 3) -> (...)."""
     return jnp.sum(a * b, axis=-1)

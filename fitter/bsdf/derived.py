@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from .._math import floats
 from ..material import Material, lobe_params
 
 #: A fitted input whose relative standard error exceeds this (and is this many
@@ -94,8 +95,8 @@ def derive(material: Material, result) -> tuple[dict[str, Any], list[str]]:
                 stderr = np.sqrt(np.maximum(np.einsum("ia,ij,ja->a", g, cov[0], g), 0.0))
                 stderr = stderr.reshape(value.shape)
             key = f"{lobe.name}.{name}"
-            out[key] = {"value": _plain(value), "stderr": None if stderr is None
-                        else _plain(stderr)}
+            out[key] = {"value": floats(value), "stderr": None if stderr is None
+                        else floats(stderr)}
             warnings += _loose(lobe.name, key, value, stderr, free, result)
     return out, warnings
 
@@ -193,10 +194,6 @@ def _loose(lobe: str, key: str, value, stderr, free, result) -> list[str]:
             f"{', '.join(loose)} only along the curve of equal {key.split('.')[-1]}, "
             "so read them as one point of that curve"]
 
-
-def _plain(v):
-    a = np.asarray(v, dtype=float)
-    return float(a) if a.ndim == 0 else [float(x) for x in a.reshape(-1)]
 
 
 def _fmt(v) -> str:

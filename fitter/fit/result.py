@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from .._math import floats
+
 
 @dataclasses.dataclass
 class FitResult:
@@ -102,11 +104,11 @@ class FitResult:
     def to_dict(self) -> dict:
         """JSON-ready dict in the result contract of the CLI (README, configs/README.md)."""
         return {
-            "params": {k: _plain(v) for k, v in self.params.items()},
-            "stderr": {k: _plain(v) for k, v in self.stderr.items()},
-            "stderr_stat": {k: _plain(v) for k, v in self.stderr_stat.items()},
-            "stderr_sys": {k: _plain(v) for k, v in self.stderr_sys.items()},
-            "stderr_disc": {k: _plain(v) for k, v in self.stderr_disc.items()},
+            "params": {k: floats(v) for k, v in self.params.items()},
+            "stderr": {k: floats(v) for k, v in self.stderr.items()},
+            "stderr_stat": {k: floats(v) for k, v in self.stderr_stat.items()},
+            "stderr_sys": {k: floats(v) for k, v in self.stderr_sys.items()},
+            "stderr_disc": {k: floats(v) for k, v in self.stderr_disc.items()},
             "adequacy": self.adequacy,
             "unidentifiable": list(self.unidentifiable),
             "status": self.status,
@@ -116,14 +118,10 @@ class FitResult:
             "time_s": {"compile": float(self.time_compile), "run": float(self.time_run),
                        "total": float(self.time_compile + self.time_run)},
             "image_rmse": self.rmse,
-            "image_rmse_rgb": _plain(self.image_rmse),
+            "image_rmse_rgb": floats(self.image_rmse),
             "n_pixels": int(self.n_pixels),
             "n_excluded": int(self.n_excluded),
             "warnings": list(self.warnings),
             **({"derived": self.derived} if self.derived else {}),
         }
 
-
-def _plain(v):
-    a = np.asarray(v, dtype=np.float64)
-    return float(a) if a.ndim == 0 else [float(x) for x in a.reshape(-1)]
