@@ -20,7 +20,7 @@ from .bsdf.base import Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
 from .compilation_cache import FAST_COMPILE
 from .environment import EnvData, lookup
-from .scene import DirectionalLight, PointLight, Scene
+from .scene import DirectionalLight, PointLight, Scene, check_scene
 
 _LOOKUP = jax.jit(lookup, static_argnums=0, compiler_options=FAST_COMPILE)
 
@@ -254,16 +254,8 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     indices (row * W + col) of the only pixels to make active (default all
     that the sphere covers).
     """
+    check_scene(scene)
     sph = scene.sphere
-    if not sph.radius > 0:
-        raise SceneError(f"sphere.radius = {sph.radius} must be > 0")
-    cam_to_center = np.subtract(scene.camera.origin, sph.center)
-    if scene.camera.type == "perspective" and np.linalg.norm(cam_to_center) <= sph.radius:
-        raise SceneError("the camera origin lies inside the sphere")
-    for light in scene.lights:
-        if isinstance(light, PointLight):
-            if np.linalg.norm(np.subtract(light.position, sph.center)) <= sph.radius:
-                raise SceneError(f"point light at {light.position} lies inside the sphere")
     sel = None if pixels is None else np.unique(np.asarray(pixels, dtype=np.int64))
     o, d = camera_rays(scene, sel)  # (H, W, K, 3), or (P, 1, K, 3) of the pixels asked for
     weight = film_samples(scene, np.zeros(1, np.int64))[2]  # (K,): the same for every pixel
