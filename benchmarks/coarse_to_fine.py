@@ -19,8 +19,8 @@ Two figures per fit, not to be confused:
   finish; direct: the full-size LM solve).
 
 The stage table splits the whole call (coarse to fine, far start) by timing
-the functions that make each stage (wrapped here, the product untouched):
-set-up and start search, the start's dead-column check, the solve's parts, the
+the functions that make each stage (``_stages``: wrapped here, the product
+untouched): set-up, the start's dead-column check, the solve's parts, the
 weak-direction cost profile (``_identify``), the discretisation term of the
 stated errors (``_discretisation``), and the rest of the post-fit checks
 (covariance, block sandwich, adequacy, verdict).
@@ -31,8 +31,6 @@ stated errors (``_discretisation``), and the rest of the post-fit checks
 from __future__ import annotations
 
 import argparse
-import collections
-import functools
 import os
 import statistics
 import sys
@@ -42,88 +40,6 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-#: Stage -> [(module, function)] whose calls make it (summed; nested calls in
-#: ``_coarse.solve`` are split off below).
-STAGES = {
-    "start check (dead columns)": [("_drivers", "_hold_dead_columns")],
-    "solve: coarse LM": [],  # solve_starts inside _coarse.solve
-    "solve: full-size Gauss-Newton steps": [],  # the GN executable inside _coarse.solve
-    "solve: coarse image set-up": [],  # the rest of _coarse.solve
-    "solve: full-size LM": [],  # solve_starts outside _coarse.solve
-    "cost profile (_identify)": [("_drivers", "weak_direction"), ("_drivers", "weak_profile")],
-    "discretisation term (_discretisation)": [
-        ("_discretisation", n) for n in ("sample_rows", "coarse_without_sky", "finer_values",
-                                         "sky_stencil_error", "shift")],
-}
-
-
-class Stages:
-    """Wraps the stage functions and sums their wall time per fit."""
-
-    def __init__(self):
-        from fitter.fit import _coarse, _discretisation, _drivers
-
-        self.t = collections.defaultdict(float)
-        self.in_coarse = False
-        mods = {"_drivers": _drivers, "_discretisation": _discretisation}
-        for stage, fns in STAGES.items():
-            for mod, name in fns:
-                self._wrap(mods[mod], name, stage)
-        self._wrap(_drivers, "_finish", "_finish")
-        self._wrap(_coarse, "solve", "_coarse")
-        solve_starts = _drivers.solve_starts
-
-        @functools.wraps(solve_starts)
-        def timed_solve(*a, **k):
-            t0 = time.perf_counter()
-            try:
-                return solve_starts(*a, **k)
-            finally:
-                self.t["solve: coarse LM" if self.in_coarse else "solve: full-size LM"] += (
-                    time.perf_counter() - t0)
-        _drivers.solve_starts = timed_solve
-        compiled = _coarse.compiled
-
-        def timed_compiled(*a, **k):
-            exe, tc = compiled(*a, **k)
-
-            def run(*b):
-                t0 = time.perf_counter()
-                try:
-                    import jax
-
-                    return jax.block_until_ready(exe(*b))
-                finally:
-                    self.t["solve: full-size Gauss-Newton steps"] += time.perf_counter() - t0
-            return run, tc
-        _coarse.compiled = timed_compiled
-
-    def _wrap(self, mod, name, label):
-        f = getattr(mod, name)
-
-        @functools.wraps(f)
-        def g(*a, **k):
-            if label == "_coarse":
-                self.in_coarse = True
-            t0 = time.perf_counter()
-            try:
-                return f(*a, **k)
-            finally:
-                self.t[label] += time.perf_counter() - t0
-                if label == "_coarse":
-                    self.in_coarse = False
-        setattr(mod, name, g)
-
-    def split(self, total: float) -> dict:
-        t = dict(self.t)
-        t["solve: coarse image set-up"] = (t.pop("_coarse", 0.0) - t.get("solve: coarse LM", 0.0)
-                                           - t.get("solve: full-size Gauss-Newton steps", 0.0))
-        t["other checks after the fit (covariance, sandwich, adequacy, verdict)"] = (
-            t.pop("_finish", 0.0) - t.get("discretisation term (_discretisation)", 0.0))
-        t["set-up, start search, rest"] = total - sum(t.values())
-        return t
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--res", type=int, default=256)
@@ -131,6 +47,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     import fitter
+    from _stages import Stages, solver_alone
     from error_vs_time import CASES, load_job
     from fitter.fit import _coarse
 
@@ -143,11 +60,9 @@ def main(argv=None) -> int:
 
     def fit(coarse, init):
         _coarse.ENABLED = coarse
-        stages.t.clear()
-        t0 = time.perf_counter()
-        res = fitter.fit(target, job.scene, job.material, init=init, fixed=job.fixed,
-                         base_dir=base)
-        return time.perf_counter() - t0, res, stages.split(time.perf_counter() - t0)
+        res, total, split = stages.run(lambda: fitter.fit(
+            target, job.scene, job.material, init=init, fixed=job.fixed, base_dir=base))
+        return total, res, split
 
     for coarse in (False, True):  # compile
         for init in starts.values():
@@ -164,7 +79,6 @@ def main(argv=None) -> int:
           "| steps | status | max rel. error vs truth | stderr m | |Δ m| vs direct "
           "| max |Δ stderr| / stderr vs direct |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    solver = lambda st: sum(v for k, v in st.items() if k.startswith("solve:"))  # noqa: E731
     for (name, coarse), runs in times.items():
         ts = [t for t, _, _ in runs]
         res = runs[-1][1]
@@ -175,7 +89,7 @@ def main(argv=None) -> int:
         dse = max(float(np.max(np.abs(np.asarray(res.stderr[k]) - np.asarray(ref.stderr[k]))
                                / np.asarray(ref.stderr[k]))) for k in ref.stderr)
         print(f"| {name} | {'coarse to fine' if coarse else 'direct LM'} | {min(ts):.3f} | "
-              f"{statistics.median(ts):.3f} | {min(solver(s) for _, _, s in runs):.3f} | "
+              f"{statistics.median(ts):.3f} | {min(solver_alone(s) for _, _, s in runs):.3f} | "
               f"{res.iterations} | {res.status} | {err:.2e} | "
               f"{res.stderr['torrance_sparrow.m']:.3e} | {dm:.1e} | {dse:.1e} |")
     for name in starts:
@@ -188,11 +102,10 @@ def main(argv=None) -> int:
     print("| stage | min s | median s |")
     print("|---|---|---|")
     for k in runs[0][2]:
-        v = [s.get(k, 0.0) for _, _, s in runs]
-        if max(v) > 0 or k.startswith("solve:"):
-            print(f"| {k} | {min(v):.3f} | {statistics.median(v):.3f} |")
+        v = [s.get(k, (0.0, 0.0))[0] for _, _, s in runs]
+        print(f"| {k} | {min(v):.3f} | {statistics.median(v):.3f} |")
     ts = [t for t, _, _ in runs]
-    sol = [solver(s) for _, _, s in runs]
+    sol = [solver_alone(s) for _, _, s in runs]
     print(f"| **solver alone** (the solve rows) | {min(sol):.3f} | {statistics.median(sol):.3f} |")
     print(f"| **whole call** | {min(ts):.3f} | {statistics.median(ts):.3f} |")
     print("\nTarget: whole call <= 0.1 s compiled at 256² from the far start.")
