@@ -52,7 +52,7 @@ class Stages:
         for mod, name, stage in WRAPPED:
             if name == "Problem.make":
                 self._wrap_make(mods[mod].Problem, stage)
-            else:
+            elif hasattr(mods[mod], name):  # an older tree may lack one
                 setattr(mods[mod], name, self._timed(getattr(mods[mod], name), stage))
         jax.monitoring.register_event_duration_secs_listener(self._event)
 
