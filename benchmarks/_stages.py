@@ -41,15 +41,22 @@ class Stages:
     the rest of the call under "rest"."""
 
     def __init__(self):
-        import jax.monitoring
-        from fitter.fit import _coarse, _discretisation, _drivers, _setup
+        import importlib
 
-        mods = {"_setup": _setup, "_drivers": _drivers, "_coarse": _coarse,
-                "_discretisation": _discretisation}
+        import jax.monitoring
+
+        mods = {}
+        for name in ("_setup", "_drivers", "_coarse", "_discretisation"):
+            try:  # an older tree may lack one
+                mods[name] = importlib.import_module(f"fitter.fit.{name}")
+            except ImportError:
+                pass
         self.stack: list = []
         self.wall = collections.defaultdict(float)
         self.xla = collections.defaultdict(float)
         for mod, name, stage in WRAPPED:
+            if mod not in mods:
+                continue
             if name == "Problem.make":
                 self._wrap_make(mods[mod].Problem, stage)
             elif hasattr(mods[mod], name):  # an older tree may lack one

@@ -25,16 +25,22 @@ weak-direction cost profile (``_identify``), the discretisation term of the
 stated errors (``_discretisation``), and the rest of the post-fit checks
 (covariance, block sandwich, adequacy, verdict).
 
-    python benchmarks/coarse_to_fine.py [--res 256] [--repeat 7]
+    python benchmarks/coarse_to_fine.py [--res 256] [--repeat 7] [--before REF]
+
+``--before REF``: also the whole call of the far-start coarse-to-fine fit
+with the code of commit REF, each tree in fresh processes (``--rounds``
+of them, interleaved), ``--repeat`` compiled fits each: the same fit's figures
+then and now, in one run.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
+import subprocess
 import sys
-import time
 
 import numpy as np
 
@@ -44,18 +50,23 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--res", type=int, default=256)
     ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--before", help="git ref to compare the whole call with")
+    ap.add_argument("--rounds", type=int, default=2, help="fresh processes per tree (--before)")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(args.res, args.repeat)))
+        return 0
+    if args.before:
+        return compare(args)
+
+    from _stages import Stages, solver_alone
 
     import fitter
-    from _stages import Stages, solver_alone
-    from error_vs_time import CASES, load_job
     from fitter.fit import _coarse
 
-    job, base = load_job("plastic", args.res)
-    truth = job.material.full_params({**job.fixed, **job.truth})
-    clean = np.asarray(fitter.render(truth, job.scene, job.material, base_dir=base))
-    target = clean + np.random.default_rng(0).normal(0.0, 2e-3, clean.shape)
-    starts = {"far start": CASES["plastic"]["init"], "lobe defaults": None}
+    job, base, target, init = _target(args.res)
+    starts = {"far start": init, "lobe defaults": None}
     stages = Stages()
 
     def fit(coarse, init):
@@ -109,6 +120,86 @@ def main(argv=None) -> int:
     print(f"| **solver alone** (the solve rows) | {min(sol):.3f} | {statistics.median(sol):.3f} |")
     print(f"| **whole call** | {min(ts):.3f} | {statistics.median(ts):.3f} |")
     print("\nTarget: whole call <= 0.1 s compiled at 256² from the far start.")
+    return 0
+
+
+def _target(res):
+    from error_vs_time import CASES, load_job
+
+    import fitter
+
+    job, base = load_job("plastic", res)
+    truth = job.material.full_params({**job.fixed, **job.truth})
+    clean = np.asarray(fitter.render(truth, job.scene, job.material, base_dir=base))
+    target = clean + np.random.default_rng(0).normal(0.0, 2e-3, clean.shape)
+    return job, base, target, CASES["plastic"]["init"]
+
+
+def worker(res: int, repeat: int) -> dict:
+    """The far-start fit (coarse to fine where the tree has it) in this
+    process's tree: one compiling call, then ``repeat`` timed ones."""
+    from _stages import Stages, solver_alone
+
+    import fitter
+
+    job, base, target, init = _target(res)
+    stages = Stages()
+
+    def fit():
+        return stages.run(lambda: fitter.fit(target, job.scene, job.material, init=init,
+                                             fixed=job.fixed, base_dir=base))
+    fit()
+    runs = [fit() for _ in range(repeat)]
+    res_ = runs[-1][0]
+    return {"times": [t for _, t, _ in runs], "solver": [solver_alone(s) for _, _, s in runs],
+            "stages": [{k: v[0] for k, v in s.items()} for _, _, s in runs],
+            "status": res_.status, "iterations": res_.iterations,
+            "params": {k: np.asarray(v).tolist() for k, v in res_.params.items()},
+            "stderr": {k: np.asarray(v).tolist() for k, v in res_.stderr.items()}}
+
+
+def compare(args) -> int:
+    import _trees
+
+    out: dict = {}
+    trees = _trees.trees(args.before, "fitter-c2f-")
+    for _ in range(args.rounds):
+        for name, tree in trees:
+            env = {**os.environ, "PYTHONPATH": tree}
+            proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--worker", "1",
+                                   "--res", str(args.res), "--repeat", str(args.repeat)],
+                                  cwd=tree, env=env, capture_output=True, text=True, check=False)
+            if proc.returncode:
+                raise SystemExit(f"{name}: {proc.stderr.strip().splitlines()[-1:]}")
+            r = json.loads(proc.stdout.strip().splitlines()[-1])
+            o = out.setdefault(name, {"times": [], "solver": [], "stages": []})
+            for k in ("times", "solver", "stages"):
+                o[k] += r[k]
+            o.update({k: r[k] for k in ("status", "iterations", "params", "stderr")})
+            print(f"# {name}: {min(r['times']):.3f} s", file=sys.stderr, flush=True)
+    load = os.getloadavg()
+    print(f"{args.res}² plastic from the far start, coarse to fine, fitter.fit compiled; "
+          f"{args.rounds} fresh processes x {args.repeat} fits per tree, interleaved; "
+          f"{os.cpu_count()} CPUs, load average {load[0]:.1f} / {load[1]:.1f}\n")
+    names = [n for n, _ in trees]
+    keys = sorted({k for n in names for s in out[n]["stages"] for k in s},
+                  key=lambda k: -max(s.get(k, 0.0) for s in out[names[-1]]["stages"]))
+    print("| tree | whole call min s | median s | solver alone min s | steps | status | "
+          + " | ".join(f"{k} (min s)" for k in keys if k != "rest") + " |")
+    print("|---|---|---|---|---|---|" + "---|" * (len(keys) - 1))
+    for n in names:
+        o = out[n]
+        print(f"| {n} | {min(o['times']):.3f} | {statistics.median(o['times']):.3f} | "
+              f"{min(o['solver']):.3f} | {o['iterations']} | {o['status']} | "
+              + " | ".join(f"{min(s.get(k, 0.0) for s in o['stages']):.3f}" for k in keys
+                           if k != "rest") + " |")
+    a, b = out[names[-1]], out[names[0]]
+    dp = max(float(np.max(np.abs(np.asarray(a["params"][k]) - np.asarray(b["params"][k]))))
+             for k in a["params"])
+    ds = max(float(np.max(np.abs(np.asarray(a["stderr"][k]) - np.asarray(b["stderr"][k]))
+                          / np.asarray(b["stderr"][k]))) for k in a["stderr"] if k in b["stderr"])
+    print(f"\nafter vs {names[0]}: whole call {min(a['times']) / min(b['times']):.2f}x the time "
+          f"(minima); max |Δ value| {dp:.1e}, max relative Δ stated error {ds:.1e}")
     return 0
 
 

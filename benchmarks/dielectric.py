@@ -98,7 +98,7 @@ def run(tree: str, case: str, fits: int, mitsuba: bool) -> dict:
     cmd = [sys.executable, os.path.abspath(__file__), "--worker", tree, case, "--fits", str(fits)]
     if mitsuba:
         cmd.append("--mitsuba")
-    proc = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True)
+    proc = subprocess.run(cmd, cwd=tree, env=env, capture_output=True, text=True, check=False)
     if proc.returncode:
         return {"failed": proc.stderr.strip().splitlines()[-1:]}
     return json.loads(proc.stdout.strip().splitlines()[-1])
