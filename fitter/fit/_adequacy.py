@@ -52,8 +52,26 @@ RIM_COS = 0.3
 REGIONS = ("body", "highlight", "rim")
 
 
+#: The last geometry's labels (``pixel_regions``): a fit asks twice (region
+#: statistics, discretisation rows) and a repeated fit of one problem shares
+#: its geometry object (``_setup._fitted_geometry`` is cached).
+_LAST_REGIONS: list = []
+
+
 def pixel_regions(geometry) -> np.ndarray:
-    """(P,) int region of each fitted pixel: 0 body, 1 highlight, 2 rim."""
+    """(P,) int region of each fitted pixel: 0 body, 1 highlight, 2 rim.
+
+    Depends on the geometry alone (not on the parameters); the last one's
+    labels are kept (as read-only), measured 13-30 ms each at 256^2."""
+    if _LAST_REGIONS and _LAST_REGIONS[0] is geometry:
+        return _LAST_REGIONS[1]
+    label = _regions(geometry)
+    label.flags.writeable = False
+    _LAST_REGIONS[:] = [geometry, label]
+    return label
+
+
+def _regions(geometry) -> np.ndarray:
     hit = np.asarray(geometry.hit)
     c = geometry.cosines
     cos_o = np.asarray(c.cos_o)
@@ -90,8 +108,12 @@ def sandwich(J, r, ids, n_blocks: int):
     J = np.asarray(J, dtype=np.float64)
     n = J.shape[1]
     rows = np.repeat(np.asarray(ids), J.shape[0] // len(ids))
+    Jr = J * np.asarray(r, dtype=np.float64)[:, None]
+    # Block sums per column (bincount: ~10x faster than np.add.at, same sums
+    # up to the order of addition).
     g = np.zeros((n_blocks, n))
-    np.add.at(g, rows, J * np.asarray(r, dtype=np.float64)[:, None])
+    for j in range(n):
+        g[:, j] = np.bincount(rows, Jr[:, j], minlength=n_blocks)
     bread = np.linalg.pinv(J.T @ J, hermitian=True)
     meat = g.T @ g * n_blocks / max(n_blocks - n, 1)
     return bread @ meat @ bread
