@@ -361,16 +361,24 @@ def cmd_fit(args) -> int:
     target, saturated = pipeline.read_target(target_path, job.scene)
     job = job.replace(fit=job.fit.replace(target=target_path))  # config.toml records it
     out = check_out(args.out or os.path.join("out", job.name))  # before any fitting
-    enable_compilation_cache()
-    _import_in_background("matplotlib.figure", "matplotlib.backends.backend_agg",
-                          *(("colour",) if job.fit.validate else ()))  # colour: metrics only
-    with staged_dir(out) as tmp:
-        outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
-                                   stage=log.stage)
-        result = outcome.to_dict()
-        with log.stage("writing outputs"):
-            write_outcome(tmp, outcome, result)
-        _check_interrupt()  # a swallowed signal must not let the new result replace --out
+    from .report_process import start
+
+    report = start()  # imports matplotlib on the other core while JAX imports here
+    try:
+        enable_compilation_cache()
+        _import_in_background(*(() if report else ("matplotlib.figure",
+                                                   "matplotlib.backends.backend_agg")),
+                              *(("colour",) if job.fit.validate else ()))  # colour: metrics
+        with staged_dir(out) as tmp:
+            outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
+                                       stage=log.stage)
+            result = outcome.to_dict()
+            with log.stage("writing outputs"):
+                write_outcome(tmp, outcome, result, report=report)
+            _check_interrupt()  # a swallowed signal must not let the new result replace --out
+    finally:
+        if report is not None:
+            report.close()
     if args.json:
         print(json.dumps(result, indent=2, allow_nan=False))
     else:
@@ -379,7 +387,9 @@ def cmd_fit(args) -> int:
 
 
 def _import_in_background(*modules: str) -> None:
-    """Import the report's libraries (~1 s) while the fit runs; XLA releases the GIL."""
+    """Import libraries needed after the fit while it runs; XLA releases the GIL."""
+    if not modules:
+        return
     import importlib
     import threading
 
