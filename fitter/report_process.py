@@ -7,7 +7,8 @@ it is on the critical path. ``fitter fit`` therefore starts ``ReportProcess``
 before importing JAX: the helper imports matplotlib and ``fitter.report`` and
 loads the fonts on the other core, then waits for the outcome on its stdin
 (pickled), draws it with the same ``fitter.report.build_report`` and answers
-the PNG's bytes on its stdout. The parent writes the file itself (the helper
+the PNG's bytes on its stdout (the page's axes are made before the outcome
+arrives, ``fitter.report.new_figure``). The parent writes the file itself (the helper
 touches no file). Any failure of the helper -- it did not start, died, or
 answered something that is not a PNG -- returns None, and the caller draws
 in-process (``fitter.outputs.write_outcome``), so the report never depends on it.
@@ -108,8 +109,10 @@ def serve() -> None:
     warm.text(0.5, 0.5, "0.1 ± 2e-3 |", family="monospace")
     warm.text(0.5, 0.5, "CONVERGED ΔE", fontweight="bold")
     warm.canvas.draw()
+    page = report.new_figure()  # the empty page and its axes, before the fit ends
     outcome, title = pickle.load(sys.stdin.buffer)
     buf = io.BytesIO()
-    report.build_report(outcome, title).savefig(buf, format="png")
+    report.build_report(outcome, title, page=page).savefig(buf, format="png")
     sys.stdout.buffer.write(buf.getvalue())
     sys.stdout.buffer.flush()
+    os._exit(0)  # the parent waits for the end of the stream: skip the interpreter's teardown
