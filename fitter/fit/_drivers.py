@@ -19,7 +19,7 @@ import numpy as np
 
 from ..limits import check_fit
 from ..scene import Scene
-from . import _args, _coarse
+from . import _args, _coarse, _discretisation
 from ._compile import best_start, compiled, jac_res, r_factor, remember_jacobian
 from ._covariance import residual_variance
 from ._identify import (WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction,
@@ -109,6 +109,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                            rtol=rtol, atol=atol, dtype=dtype, base_dir=base_dir)
     say = progress or _quiet
     problem = cheapened(searched(problem))
+    _discretisation.prefetch(problem)  # the stated error's finer geometry, beside the solve
     coarse = _coarse.eligible(problem.renderer.scene, mask=mask, exclude=exclude,
                               weights=weights, saturation=saturation, loss=loss, dtype=dtype,
                               n_starts=n_starts)
