@@ -366,9 +366,8 @@ def cmd_fit(args) -> int:
     report = start()  # imports matplotlib on the other core while JAX imports here
     try:
         enable_compilation_cache()
-        _import_in_background(*(() if report else ("matplotlib.figure",
-                                                   "matplotlib.backends.backend_agg")),
-                              *(("colour",) if job.fit.validate else ()))  # colour: metrics
+        if report is None:  # no helper: the report's libraries on a thread, as before
+            _import_in_background("matplotlib.figure", "matplotlib.backends.backend_agg")
         with staged_dir(out) as tmp:
             outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
                                        stage=log.stage)
@@ -388,8 +387,6 @@ def cmd_fit(args) -> int:
 
 def _import_in_background(*modules: str) -> None:
     """Import libraries needed after the fit while it runs; XLA releases the GIL."""
-    if not modules:
-        return
     import importlib
     import threading
 
