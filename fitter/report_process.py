@@ -88,7 +88,7 @@ def start() -> ReportProcess | None:
     """A ``ReportProcess``, or None where one cannot be started."""
     try:
         return ReportProcess()
-    except OSError:
+    except Exception:  # noqa: BLE001 (no interpreter to start, no fork: draw in-process)
         return None
 
 
