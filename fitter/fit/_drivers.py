@@ -109,7 +109,6 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                            rtol=rtol, atol=atol, dtype=dtype, base_dir=base_dir)
     say = progress or _quiet
     problem = cheapened(searched(problem))
-    _discretisation.prefetch(problem)  # the stated error's finer geometry, beside the solve
     coarse = _coarse.eligible(problem.renderer.scene, mask=mask, exclude=exclude,
                               weights=weights, saturation=saturation, loss=loss, dtype=dtype,
                               n_starts=n_starts)
@@ -119,6 +118,9 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         problem, t_compile = _hold_dead_columns(problem, coarse)
         if not problem.blocks:
             return all_held(problem, 0, t_compile, 0.0)
+    # The stated error's finer geometry (NumPy) on a thread from here: beside the
+    # solve's and the profile's XLA runs, after the Python-heavy start check.
+    _discretisation.prefetch(problem)
     data = problem.data(0)
     z0s = make_starts(problem.spec, problem.z_init(), n_starts)
     first = None
