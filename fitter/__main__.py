@@ -1,5 +1,5 @@
 """``python -m fitter``: the same command line as the ``fitter`` console script."""
 
-from .cli import run
+from .program import run
 
 run()

@@ -21,7 +21,9 @@ relative to the working directory), staged and swapped in by
 interrupted or failed run leaves no half-written folder. ``--json`` prints
 exactly one JSON document on stdout; progress and log lines go to stderr
 (silenced by ``--quiet``). JAX, Mitsuba and the config reader are imported
-only once a command runs, so ``--help`` and usage errors answer at once.
+only once a command runs, so ``--help`` and usage errors answer at once. The
+program (console script, ``python -m fitter``) is ``fitter.program.run``:
+``main`` and then a fast exit.
 """
 
 from __future__ import annotations
@@ -41,12 +43,6 @@ from .errors import FitterError
 from .outputs import write_outcome
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
-
-#: Commands after which ``run`` ends the process at once (``os._exit``): each
-#: writes its files through ``outdir``/``imageio``, closed and moved into place
-#: before it returns, and holds no pool or server to shut down (``batch`` does).
-#: A normal exit spends 0.25-0.4 s tearing down JAX's and drjit's runtimes.
-FAST_EXIT = ("fit", "render", "validate")
 
 
 class UsageError(FitterError):
@@ -77,29 +73,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"fitter: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_INPUT
-
-
-def run() -> None:
-    """The ``fitter`` program (console script and ``python -m fitter``): ``main()``
-    on ``sys.argv``, then exit with its code.
-
-    After a ``FAST_EXIT`` command every output is on disk, so the interpreter's
-    teardown is skipped: JAX's pending effects are awaited, stdout and stderr
-    flushed, then ``os._exit``. An exception out of ``main`` (exit code 1 with a
-    traceback) exits normally.
-    """
-    argv = sys.argv[1:]
-    code = main(argv)
-    if not (argv and argv[0] in FAST_EXIT):
-        sys.exit(code)
-    if "jax" in sys.modules:
-        sys.modules["jax"].effects_barrier()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):  # closed or broken pipe: as Python's own exit would
-            code = code or EXIT_INTERNAL
-    os._exit(code)
 
 
 def _printable(text: str) -> str:
@@ -366,8 +339,6 @@ def cmd_fit(args) -> int:
     report = start()  # imports matplotlib on the other core while JAX imports here
     try:
         enable_compilation_cache()
-        if report is None:  # no helper: the report's libraries on a thread, as before
-            _import_in_background("matplotlib.figure", "matplotlib.backends.backend_agg")
         with staged_dir(out) as tmp:
             outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
                                        stage=log.stage)
@@ -383,19 +354,6 @@ def cmd_fit(args) -> int:
     else:
         _print_summary(outcome, out)
     return EXIT_OK if outcome.converged else EXIT_NOT_CONVERGED
-
-
-def _import_in_background(*modules: str) -> None:
-    """Import libraries needed after the fit while it runs; XLA releases the GIL."""
-    import importlib
-    import threading
-
-    def work():
-        for name in modules:
-            with contextlib.suppress(Exception):  # the report imports it again and reports
-                importlib.import_module(name)
-
-    threading.Thread(target=work, name="fitter-imports", daemon=True).start()
 
 
 def _print_summary(outcome, out: str) -> None:
