@@ -106,7 +106,7 @@ def test_a_fit_that_does_not_converge_exits_3_and_still_writes_its_outputs(
 
 def test_the_program_ends_at_once_with_its_outputs_whole(small, tmp_path):
     # `python -m fitter fit` ends with os._exit after the outputs are written
-    # (cli.run): stdout must still arrive whole, the exit code be fit's, and
+    # (fitter.program.run): stdout must still arrive whole, the exit code be fit's, and
     # the output folder complete.
     for cfg, want in ((small, 0), (_config_with(os.path.dirname(small), max_steps=1), 3)):
         out = tmp_path / f"res{want}"
