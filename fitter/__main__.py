@@ -1,5 +1,5 @@
 """``python -m fitter``: the same command line as the ``fitter`` console script."""
 
-from .cli import main
+from .program import run
 
-raise SystemExit(main())
+run()

@@ -21,7 +21,9 @@ relative to the working directory), staged and swapped in by
 interrupted or failed run leaves no half-written folder. ``--json`` prints
 exactly one JSON document on stdout; progress and log lines go to stderr
 (silenced by ``--quiet``). JAX, Mitsuba and the config reader are imported
-only once a command runs, so ``--help`` and usage errors answer at once.
+only once a command runs, so ``--help`` and usage errors answer at once. The
+program (console script, ``python -m fitter``) is ``fitter.program.run``:
+``main`` and then a fast exit.
 """
 
 from __future__ import annotations
@@ -332,34 +334,26 @@ def cmd_fit(args) -> int:
     target, saturated = pipeline.read_target(target_path, job.scene)
     job = job.replace(fit=job.fit.replace(target=target_path))  # config.toml records it
     out = check_out(args.out or os.path.join("out", job.name))  # before any fitting
-    enable_compilation_cache()
-    _import_in_background("matplotlib.figure", "matplotlib.backends.backend_agg",
-                          *(("colour",) if job.fit.validate else ()))  # colour: metrics only
-    with staged_dir(out) as tmp:
-        outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
-                                   stage=log.stage)
-        result = outcome.to_dict()
-        with log.stage("writing outputs"):
-            write_outcome(tmp, outcome, result)
-        _check_interrupt()  # a swallowed signal must not let the new result replace --out
+    from .report_process import start
+
+    report = start()  # imports matplotlib on the other core while JAX imports here
+    try:
+        enable_compilation_cache()
+        with staged_dir(out) as tmp:
+            outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
+                                       stage=log.stage)
+            result = outcome.to_dict()
+            with log.stage("writing outputs"):
+                write_outcome(tmp, outcome, result, report=report)
+            _check_interrupt()  # a swallowed signal must not let the new result replace --out
+    finally:
+        if report is not None:
+            report.close()
     if args.json:
         print(json.dumps(result, indent=2, allow_nan=False))
     else:
         _print_summary(outcome, out)
     return EXIT_OK if outcome.converged else EXIT_NOT_CONVERGED
-
-
-def _import_in_background(*modules: str) -> None:
-    """Import the report's libraries (~1 s) while the fit runs; XLA releases the GIL."""
-    import importlib
-    import threading
-
-    def work():
-        for name in modules:
-            with contextlib.suppress(Exception):  # the report imports it again and reports
-                importlib.import_module(name)
-
-    threading.Thread(target=work, name="fitter-imports", daemon=True).start()
 
 
 def _print_summary(outcome, out: str) -> None:

@@ -17,13 +17,20 @@ def _write_json(path: str, data) -> None:
         fh.write("\n")
 
 
-def write_outcome(folder: str, outcome, result: dict) -> None:
-    """Write an outcome's files into ``folder`` (a staged, still hidden folder)."""
+def write_outcome(folder: str, outcome, result: dict, report=None) -> None:
+    """Write an outcome's files into ``folder`` (a staged, still hidden folder).
+
+    ``report``: a started ``fitter.report_process.ReportProcess`` that draws
+    report.png while the other files are written; without one, or if it fails,
+    the report is drawn here.
+    """
     from .config import dumps_toml, job_to_dict
     from .imageio import write_image
-    from .report import make_report
 
     job = outcome.job
+    title = f"{job.name}: {' + '.join(job.material.lobes)}"
+    if report is not None:
+        report.send(outcome, title)
     write_image(os.path.join(folder, "fit.exr"), outcome.rendered)
     write_image(os.path.join(folder, "residual.exr"), outcome.residual)
     if outcome.validation is not None:
@@ -31,11 +38,17 @@ def write_outcome(folder: str, outcome, result: dict) -> None:
     _write_json(os.path.join(folder, "result.json"), result)
     with open(os.path.join(folder, "config.toml"), "w", encoding="utf-8") as fh:
         fh.write(dumps_toml(job_to_dict(job)))
-    make_report(os.path.join(folder, "report.png"), outcome,
-                title=f"{job.name}: {' + '.join(job.material.lobes)}")
     from .mitsuba.export import export_job, MitsubaError
 
     try:  # scene.xml: the fit as a Mitsuba 3 scene
         export_job(folder, job, outcome.fit.params)
     except MitsubaError as exc:  # a material Mitsuba cannot express: the fit still counts
         print(f"warning: no scene.xml: {exc}", file=sys.stderr)
+    png = report.receive() if report is not None else None
+    if png is None:
+        from .report import make_report
+
+        make_report(os.path.join(folder, "report.png"), outcome, title=title)
+    else:
+        with open(os.path.join(folder, "report.png"), "wb") as fh:
+            fh.write(png)

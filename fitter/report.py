@@ -62,33 +62,52 @@ def make_report(path: str, outcome: Outcome, title: str = "") -> None:
     fig.savefig(path, format="png")
 
 
-def build_report(outcome: Outcome, title: str = ""):
-    """The report as a matplotlib ``Figure``; every text is fitted inside its panel.
+def new_figure():
+    """(figure, axes by panel name): the report's page before anything is drawn on it.
 
-    The residual panel greys out the pixels the fit did not use; ``title`` is
-    the headline, e.g. the config name and lobes.
+    Nothing here depends on the outcome, so ``fitter.report_process`` makes it
+    while the fit still runs (8 axes, ~0.07 s); ``build_report`` fills it.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-
-    target = np.asarray(outcome.target, dtype=np.float64)
-    fit = np.asarray(outcome.rendered, dtype=np.float64)
-    positive = target[target > 0]
-    white = float(np.percentile(positive, WHITE_PERCENTILE)) if positive.size else 1.0
 
     fig = Figure(figsize=(17, 8.6), dpi=100)  # no pyplot: no global state, faster import
     FigureCanvasAgg(fig)
     grid = fig.add_gridspec(3, 4, height_ratios=[0.45, 4.2, 2.1], hspace=0.18, wspace=0.12,
                             left=0.02, right=0.98, top=0.97, bottom=0.03)
-    _headline(fig.add_subplot(grid[0, :]), outcome, title)
+    axes = {"headline": fig.add_subplot(grid[0, :])}
+    for col, name in enumerate(("target", "fit", "residual", "validation")):
+        axes[name] = fig.add_subplot(grid[1, col])
+    axes["table"] = fig.add_subplot(grid[2, :3])
+    axes["facts"] = fig.add_subplot(grid[2, 3])
+    return fig, axes
+
+
+def build_report(outcome: Outcome, title: str = "", page=None):
+    """The report as a matplotlib ``Figure``; every text is fitted inside its panel.
+
+    The residual panel greys out the pixels the fit did not use; ``title`` is
+    the headline, e.g. the config name and lobes. ``page``: an unused
+    ``new_figure()`` to draw on (default: a new one).
+    """
+    target = np.asarray(outcome.target, dtype=np.float64)
+    fit = np.asarray(outcome.rendered, dtype=np.float64)
+    positive = target[target > 0]
+    white = float(np.percentile(positive, WHITE_PERCENTILE)) if positive.size else 1.0
+
+    fig, axes = page or new_figure()
+    _headline(axes["headline"], outcome, title)
 
     panels = [(target, "target"), (fit, "fit (JAX forward model)")]
-    for col, (img, name) in enumerate(panels):
-        ax = fig.add_subplot(grid[1, col])
+    for key, (img, name) in zip(("target", "fit"), panels):
+        ax = axes[key]
         ax.imshow(display(img, white), interpolation="nearest")
         _frame(ax, name)
-    _residual(fig, fig.add_subplot(grid[1, 2]), target - fit, outcome.fitted)
-    ax = fig.add_subplot(grid[1, 3])
+    _residual(fig, axes["residual"], target - fit, outcome.fitted)
+    for key in ("validation", "table", "facts"):  # after the colour bar, as if made now
+        fig.delaxes(axes[key])
+        fig.add_axes(axes[key])
+    ax = axes["validation"]
     if outcome.validation is not None:
         ax.imshow(display(outcome.validation.image, white), interpolation="nearest")
         _frame(ax, "validation (Mitsuba 3)")
@@ -99,8 +118,8 @@ def build_report(outcome: Outcome, title: str = ""):
     fig.text(0.02, 0.005, f"display: linear / {white:.3g} (target's {WHITE_PERCENTILE} "
              "percentile), sRGB", fontsize=8, color=NEUTRAL)
 
-    _param_table(fig.add_subplot(grid[2, :3]), outcome)
-    _facts(fig.add_subplot(grid[2, 3]), outcome)
+    _param_table(axes["table"], outcome)
+    _facts(axes["facts"], outcome)
     return fig
 
 

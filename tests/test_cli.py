@@ -104,6 +104,23 @@ def test_a_fit_that_does_not_converge_exits_3_and_still_writes_its_outputs(
     assert {"result.json", "report.png", "fit.exr"} <= set(os.listdir(out))
 
 
+def test_the_program_ends_at_once_with_its_outputs_whole(small, tmp_path):
+    # `python -m fitter fit` ends with os._exit after the outputs are written
+    # (fitter.program.run): stdout must still arrive whole, the exit code be fit's, and
+    # the output folder complete.
+    for cfg, want in ((small, 0), (_config_with(os.path.dirname(small), max_steps=1), 3)):
+        out = tmp_path / f"res{want}"
+        proc = subprocess.run([sys.executable, "-m", "fitter", "fit", cfg, "--out", str(out),
+                               "--json", "--quiet"], capture_output=True, text=True,
+                              timeout=600)
+        assert proc.returncode == want, proc.stderr
+        printed = json.loads(proc.stdout)
+        assert printed == json.loads((out / "result.json").read_text())
+        assert {"result.json", "report.png", "fit.exr", "residual.exr", "config.toml",
+                "scene.xml"} <= set(os.listdir(out))
+        assert imageio.read_image(str(out / "fit.exr")).shape == (32, 40, 3)
+
+
 def test_8bit_srgb_target_is_decoded_and_its_clipped_pixels_are_excluded(tmp_path, capsys):
     data = json.loads(json.dumps(SMALL))
     data["scene"]["lights"][0]["intensity"] = [180.0, 180.0, 180.0]  # clips the highlight

@@ -3,6 +3,7 @@ entry is replaced by the next run, not re-traced by every later one."""
 
 from __future__ import annotations
 
+import json
 import os
 import pathlib
 import subprocess
@@ -19,24 +20,42 @@ FIT = """
 import sys
 import jax
 jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+import json
 import numpy as np
 import fitter
+from fitter.fit import _cache
+traced = []
+_export = _cache.export.export
+def counted(*args, **kwargs):
+    traced.append(1)
+    return _export(*args, **kwargs)
+_cache.export.export = counted
 scene = fitter.Scene(width=16, height=16, supersampling=1,
                      lights=(fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),))
 target = np.asarray(fitter.render({"lambert.rho_d": 0.5}, scene))
-assert fitter.fit(target, scene, "lambert").status == "converged"
+target = target + np.random.default_rng(0).normal(0.0, 0.01, target.shape)  # stderr > 0
+res = fitter.fit(target, scene, "lambert")
+assert res.status == "converged"
 print("loaded:", " ".join(m for m in ("optimistix", "lineax", "equinox", "optax")
                           if m in sys.modules))
+print("traced:", len(traced))
+print("result:", json.dumps({k: res.to_dict()[k] for k in ("params", "stderr", "stderr_disc")}))
 """
+
+
+def run_fit_lines(folder) -> dict[str, str]:
+    """Run ``FIT``; its ``name: value`` lines."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run([sys.executable, "-c", FIT, str(folder)], check=True, env=env,
+                          cwd=ROOT, timeout=300, capture_output=True, text=True)
+    return dict(ln.split(": ", 1) if ": " in ln else (ln.rstrip(":"), "")
+                for ln in proc.stdout.splitlines() if ln.split(":")[0] in
+                ("loaded", "traced", "result"))
 
 
 def run_fit(folder) -> set[str]:
     """Run ``FIT``; the solver libraries it imported."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run([sys.executable, "-c", FIT, str(folder)], check=True, env=env,
-                          cwd=ROOT, timeout=300, capture_output=True, text=True)
-    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("loaded:")][-1]
-    return set(line.split()[1:])
+    return set(run_fit_lines(folder)["loaded"].split())
 
 
 def test_a_corrupt_cache_entry_is_rewritten_by_the_next_run(tmp_path):
@@ -63,3 +82,16 @@ def test_a_repeated_fit_loads_its_trace_without_the_solver_libraries(tmp_path):
         path.write_text("{not json")  # a broken table: read from optimistix again
     assert "optimistix" in run_fit(tmp_path)
     assert run_fit(tmp_path) == set()
+
+
+def test_a_repeated_fit_traces_nothing_and_states_the_same_errors(tmp_path):
+    # Every compiled step of a fit -- the start's check, the solve, the cost
+    # profile and the discretisation's finer render -- is exported on the first
+    # run and loaded by the next, which must give the same values and errors.
+    first = run_fit_lines(tmp_path)
+    assert int(first["traced"]) >= 4
+    again = run_fit_lines(tmp_path)
+    assert int(again["traced"]) == 0
+    assert json.loads(again["result"]) == json.loads(first["result"])
+    disc = json.loads(first["result"])["stderr_disc"]["lambert.rho_d"]
+    assert min(disc) > 0  # the finer render ran (16^2, 1 sample: its error is stated)

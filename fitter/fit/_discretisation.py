@@ -28,15 +28,21 @@ systematic part already computed (``benchmarks/discretisation_cost.py``).
 
 from __future__ import annotations
 
+import threading
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .. import envlight
+from .._math import to_device
+from ..compilation_cache import FAST_COMPILE
 from ..environment import load_environment
 from ..geometry import build_geometry
 from ..material import EXPOSURE_KEY, Material
 from ..render import render_active
+from . import _adequacy
+from ._cache import compile_cached
 
 #: The finer model's sub-pixel samples per axis: 2k, at most this.
 MAX_SUPERSAMPLING = 16
@@ -82,9 +88,35 @@ def finer_material(material):
     return Material.make(material.lobes, opts, exposure=material.exposure)
 
 
-def _cast(a):
-    return jnp.asarray(a, dtype=jnp.float64) if np.asarray(a).dtype.kind == "f" \
-        else jnp.asarray(a)
+#: Executables of ``_render`` in this process, by structure and shapes (the last few).
+_EXECUTABLES: dict = {}
+_KEEP_EXECUTABLES = 8
+
+
+def _render(params, geo, env, sphere, material, env_type) -> np.ndarray:
+    """``render_active`` (P, 3) as float64 NumPy, through one executable per
+    structure and shapes whose trace the fit's persistent cache keeps
+    (``_cache.compile_cached``): a repeated ``fitter fit`` loads it instead of
+    tracing the renderer (0.1 s). Host arrays go to the device as float64
+    (``to_device``: no copy kernel per shape); device arrays as they are."""
+    def put(a):
+        if isinstance(a, jax.Array):
+            return a
+        return to_device(a, np.float64) if np.asarray(a).dtype.kind == "f" else to_device(a)
+
+    args = jax.tree_util.tree_map(put, (params, geo, env, sphere))
+    shapes = jax.tree_util.tree_map(lambda a: (a.shape, str(a.dtype)), args)
+    key = repr(("discretisation_render", material, env_type, str(shapes)))
+    exe = _EXECUTABLES.pop(key, None)
+    if exe is None:
+        def active(p, g, e, s):
+            return render_active(p, g, e, s, material=material, env_type=env_type)
+
+        exe = compile_cached(active, args, key, FAST_COMPILE)
+    _EXECUTABLES[key] = exe
+    while len(_EXECUTABLES) > _KEEP_EXECUTABLES:
+        _EXECUTABLES.pop(next(iter(_EXECUTABLES)))
+    return np.asarray(exe(*args), dtype=np.float64)
 
 
 def _sun_only(scene, env64, sun):
@@ -108,21 +140,69 @@ def sample_rows(labels) -> tuple[np.ndarray, np.ndarray]:
     return rows, weight
 
 
+#: ``prefetch`` makes the finer geometry ahead only up to this many samples
+#: (pixels x k'^2; 2932 x 64 at the quickstart's 128^2): it is held beside the
+#: solve's own memory.
+PREFETCH_SAMPLES = 2**19
+#: The finer geometry being made ahead: {key: (thread, [geometry or None])}, one.
+_AHEAD: dict = {}
+
+
+def _ahead_key(scene, flat) -> tuple:
+    return scene, np.asarray(flat, np.int64).tobytes()
+
+
+def prefetch(problem) -> None:
+    """Start making the finer model's geometry of the sampled fitted pixels
+    (``finer_values``) on a thread, while the solver runs.
+
+    It depends on the scene and the fitted pixels only, not on the fit, and is
+    NumPy (0.1 s at the quickstart's 128^2, 8 x 8 samples), which runs beside
+    XLA's execution of the solve and the profile. Scenes with an environment
+    map or environment-lit opaque lobes are made where they are needed.
+    """
+    r = problem.renderer
+    scene = r.scene
+    if scene.environment.type == "envmap" or envlight.lit_by_environment(scene, r.material):
+        return
+    rows, _ = sample_rows(_adequacy.pixel_regions(problem.geometry))
+    flat = np.asarray(r.pixel_index)[problem.rows][rows]
+    fine = scene.replace(supersampling=finer_supersampling(scene))
+    if flat.size * fine.supersampling**2 > PREFETCH_SAMPLES:
+        return
+    env64 = load_environment(scene.environment, getattr(problem, "base_dir", None))
+    box: list = [None]
+
+    def make():
+        try:
+            box[0] = build_geometry(fine, r.env_type, env64, None, pixels=flat)
+        except Exception:  # noqa: BLE001 (made again, and any error raised, where needed)
+            pass
+
+    thread = threading.Thread(target=make, name="fitter-finer-geometry", daemon=True)
+    _AHEAD.clear()
+    _AHEAD[_ahead_key(fine, flat)] = (thread, box)
+    thread.start()
+
+
 def _values(scene, material, env64, lighting, flat, params, env_type):
     """(values (P, 3), coverage (P,)) of the pixels ``flat`` (flat indices) of
     ``scene`` lit by its lights and ``lighting`` (``geometry.build_geometry``)."""
-    geo = build_geometry(scene, env_type, env64, lighting, pixels=flat)
+    ahead = _AHEAD.pop(_ahead_key(scene, flat), None) if lighting is None else None
+    if ahead is not None:
+        ahead[0].join()
+    geo = ahead[1][0] if ahead is not None and ahead[1][0] is not None else \
+        build_geometry(scene, env_type, env64, lighting, pixels=flat)
     index = np.asarray(geo.pixel_index)
     at = np.minimum(np.searchsorted(index, flat), max(index.size - 1, 0))
     found = index[at] == flat if index.size else np.zeros(flat.size, bool)
     sub = geo.subset(at[found])
-    sphere = (jnp.asarray(scene.sphere.center, jnp.float64),
-              jnp.asarray(scene.sphere.radius, jnp.float64))
+    sphere = (np.asarray(scene.sphere.center, np.float64),
+              np.asarray(scene.sphere.radius, np.float64))
     vals = np.zeros((flat.size, 3))
-    vals[found] = np.asarray(render_active(
-        {k: jnp.asarray(v, jnp.float64) for k, v in params.items()},
-        jax.tree_util.tree_map(_cast, sub), jax.tree_util.tree_map(_cast, env64), sphere,
-        material=material, env_type=env_type), dtype=np.float64)
+    vals[found] = _render({k: np.asarray(v, np.float64) for k, v in params.items()},
+                          sub._replace(pixel_index=None, background_image=None), env64,
+                          sphere, material, env_type)
     coverage = np.zeros(flat.size)
     coverage[found] = np.asarray(sub.hit, dtype=np.float64) @ np.asarray(sub.sample_weight)
     return vals, coverage
@@ -173,9 +253,8 @@ def coarse_without_sky(data, params, material, env_type, model) -> np.ndarray:
     if not (geo.env_color.shape[0] and geo.env_color.shape[1]):
         return np.asarray(model, dtype=np.float64)
     empty = jnp.zeros((0, 0, 0), dtype=geo.env_color.dtype)
-    return np.asarray(render_active(_params(data, params), geo._replace(env_color=empty),
-                                    data.env, data.sphere, material=material,
-                                    env_type=env_type), dtype=np.float64)
+    return _render(_params(data, params), geo._replace(env_color=empty), data.env,
+                   data.sphere, material, env_type)
 
 
 def sky_stencil_error(data, params, material, env_type) -> np.ndarray:
@@ -191,9 +270,8 @@ def sky_stencil_error(data, params, material, env_type) -> np.ndarray:
         light_weight=geo.light_weight[:0], light_color=geo.light_color[:0], sun=(),
         background=jnp.zeros_like(geo.background))
     opts = {k: v for k, v in material.options if k.split(".")[0] in glossy}
-    sky = np.asarray(render_active(_params(data, params), dark, data.env, data.sphere,
-                                   material=Material.make(glossy, opts), env_type=env_type),
-                     dtype=np.float64)
+    sky = _render(_params(data, params), dark, data.env, data.sphere,
+                  Material.make(glossy, opts), env_type)
     if material.exposure:
         sky = sky * float(params[EXPOSURE_KEY])
     return SKY_STENCIL_ACCURACY * sky

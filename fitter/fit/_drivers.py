@@ -19,7 +19,7 @@ import numpy as np
 
 from ..limits import check_fit
 from ..scene import Scene
-from . import _args, _coarse
+from . import _args, _coarse, _discretisation
 from ._compile import best_start, compiled, jac_res, r_factor, remember_jacobian
 from ._covariance import residual_variance
 from ._identify import (WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction,
@@ -118,6 +118,9 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         problem, t_compile = _hold_dead_columns(problem, coarse)
         if not problem.blocks:
             return all_held(problem, 0, t_compile, 0.0)
+    # The stated error's finer geometry (NumPy) on a thread from here: beside the
+    # solve's and the profile's XLA runs, after the Python-heavy start check.
+    _discretisation.prefetch(problem)
     data = problem.data(0)
     z0s = make_starts(problem.spec, problem.z_init(), n_starts)
     first = None
