@@ -124,7 +124,9 @@ def _geometry(scene, env64, lighting, flat, env_type, key):
     index = np.asarray(geo.pixel_index)
     at = np.minimum(np.searchsorted(index, flat), max(index.size - 1, 0))
     found = index[at] == flat if index.size else np.zeros(flat.size, bool)
-    sub = geo.subset(at[found])
+    rows = at[found]
+    # Usually every pixel asked for is active, in order: no copy of the sun's (L, Q) arrays.
+    sub = geo if np.array_equal(rows, np.arange(index.size)) else geo.subset(rows)
     coverage = np.zeros(flat.size)
     coverage[found] = np.asarray(sub.hit, dtype=np.float64) @ np.asarray(sub.sample_weight)
     out = jax.tree_util.tree_map(_cast, sub), found, coverage
