@@ -175,27 +175,38 @@ def test_geometry_of_a_pixel_subset_equals_those_pixels_of_the_whole(sun_probe):
 
 def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
     # The sun groups' cosines are computed per component in pieces (geometry._sun_group);
-    # reference: bsdf.base.cosines on the broadcast (L, Q, 3) directions, which they
-    # must equal exactly (same formulas and summation order), across piece boundaries
-    # and at h = 0 (light opposite the view) and h along n (mirror configuration).
+    # reference: bsdf.base.cosines of JAX arrays (its other code path: np.cross-like
+    # jnp.cross and sums over the last axis) on the broadcast (L, Q, 3) directions,
+    # across piece boundaries and at h = 0 (light opposite the view) and h along n.
     from fitter import geometry
     from fitter.bsdf.base import Cosines, cosines
 
     rng = np.random.default_rng(3)
     unit = lambda a: a / np.linalg.norm(a, axis=-1, keepdims=True)  # noqa: E731
     n, v = unit(rng.normal(size=(2, 301, 3)))
+    v[9] = unit(n[9] + 0.5 * v[9])  # in front of the surface, for the mirror pair
     dirs = unit(rng.normal(size=(7, 3)))
     dirs[0], dirs[1] = -v[4], unit(2 * (n[9] @ v[9]) * n[9] - v[9])
-    w = rng.random(301)
+    w = 0.5 + rng.random(301)
     monkeypatch.setattr(geometry, "SUN_CHUNK", 50)  # 7 pieces of 7 lights x 7 samples
     rows, cos, weight, _ = geometry._sun_group(n, v, w, np.arange(301), dirs, np.ones((7, 3)))
-    d = np.broadcast_to(dirs[:, None], (7, 301, 3))
-    ref = cosines(np.broadcast_to(n, d.shape), d, np.broadcast_to(v, d.shape))
+    d = jnp.broadcast_to(jnp.asarray(dirs)[:, None], (7, 301, 3))
+    ref = Cosines(*(np.asarray(a) for a in cosines(jnp.broadcast_to(jnp.asarray(n), d.shape), d,
+                                                   jnp.broadcast_to(jnp.asarray(v), d.shape))))
     lit = (ref.cos_i > 0) & (ref.cos_o > 0)
+    np.testing.assert_array_equal(weight > 0, lit)  # w > 0 everywhere
     for got, want, stand_in in zip(cos, ref, Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)):
-        np.testing.assert_array_equal(got, np.where(lit, want, stand_in))
-    np.testing.assert_array_equal(weight, np.where(lit, w * ref.cos_i, 0.0))
+        np.testing.assert_allclose(got, np.where(lit, want, stand_in), rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(weight, np.where(lit, w * ref.cos_i, 0.0), rtol=1e-13, atol=1e-15)
     assert lit.any() and not lit.all()
+    raw = geometry._pair_cosines(n, v, dirs)  # before the stand-ins: every pair
+    dn = np.broadcast_to(dirs[:, None], (7, 301, 3))  # and cosines' own NumPy path
+    host = cosines(np.broadcast_to(n, dn.shape), dn, np.broadcast_to(v, dn.shape))
+    for got, also, want in zip(raw, host, ref):
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-15)
+        np.testing.assert_array_equal(also, got)  # the same sums in the same order
+    assert raw.cos_h[0, 4] == 0 and raw.tan2_h[0, 4] == 0  # h = 0
+    assert raw.tan2_h[1, 9] < 1e-20 and raw.cos_h[1, 9] > 1 - 1e-12  # h along n
 
 
 def _env_problem(sun_probe):
