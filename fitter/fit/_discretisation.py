@@ -110,9 +110,12 @@ def sample_rows(labels) -> tuple[np.ndarray, np.ndarray]:
 
 #: The finer geometries of the last ``finer_values`` call (its three, on the device),
 #: kept for a refit of the same scene and pixels: building them again (the sun's
-#: cells x 2k samples) was 1.6 s of a compiled env_plastic fit's 5.9 s.
+#: cells x 2k samples) was 1.6 s of a compiled env_plastic fit's 5.9 s. At most
+#: ``_KEEP_BYTES`` in all (env_plastic's three: ~0.4 GB), so a large image's finer
+#: geometry is not held after its fit.
 _GEOMETRIES: dict = {}
 _KEEP_GEOMETRIES = 3
+_KEEP_BYTES = 2**29
 
 
 def _geometry(scene, env64, lighting, flat, env_type, key):
@@ -132,7 +135,9 @@ def _geometry(scene, env64, lighting, flat, env_type, key):
     out = jax.tree_util.tree_map(_cast, sub), found, coverage
     if key is not None:
         _GEOMETRIES[key] = out
-        while len(_GEOMETRIES) > _KEEP_GEOMETRIES:
+        size = lambda g: sum(a.nbytes for a in jax.tree_util.tree_leaves(g[0]))  # noqa: E731
+        while _GEOMETRIES and (len(_GEOMETRIES) > _KEEP_GEOMETRIES or
+                               sum(size(g) for g in _GEOMETRIES.values()) > _KEEP_BYTES):
             _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
     return out
 
