@@ -189,7 +189,7 @@ def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
     dirs[0], dirs[1] = -v[4], unit(2 * (n[9] @ v[9]) * n[9] - v[9])
     w = 0.5 + rng.random(301)
     monkeypatch.setattr(geometry, "SUN_CHUNK", 50)  # 7 pieces of 7 lights x 7 samples
-    rows, cos, weight, _ = geometry._sun_group(n, v, w, np.arange(301), dirs, np.ones((7, 3)))
+    _, cos, weight, _ = geometry._sun_group(n, v, w, np.arange(301), dirs, np.ones((7, 3)))
     d = jnp.broadcast_to(jnp.asarray(dirs)[:, None], (7, 301, 3))
     ref = Cosines(*(np.asarray(a) for a in cosines(jnp.broadcast_to(jnp.asarray(n), d.shape), d,
                                                    jnp.broadcast_to(jnp.asarray(v), d.shape))))
