@@ -18,6 +18,9 @@ Usage: ``.venv/bin/python benchmarks/envlight.py [--spp 4096] [--case env_plasti
    fit (the same fit again in that process), with per-step render and Jacobian
    time of the whole material and peak RSS; the same for the case's material
    under two point lights (the ``plastic`` scene) as the baseline of the same run.
+   ``--before REF`` runs the same fits on that commit's tree too (``_trees``),
+   interleaved with this one's, and ``--repeat N`` keeps each figure's minimum
+   over N runs (the machine is shared: times are upper bounds).
 """
 
 from __future__ import annotations
@@ -31,6 +34,9 @@ import sys
 import time
 
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _trees  # noqa: E402
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir)
 sys.path.insert(0, ROOT)
@@ -184,7 +190,7 @@ target = np.asarray(fitter.render(mat.full_params(truth), scene, mat, base_dir=b
     if scene_of != case else read_image(os.path.join(base, "target.exr"))
 t1 = time.perf_counter()
 res = fitter.fit(target, scene, mat, fixed=fixed or None, base_dir=base)
-t_first = time.perf_counter() - t1
+t_first, t_compile = time.perf_counter() - t1, res.time_compile
 t1 = time.perf_counter()
 res = fitter.fit(target, scene, mat, fixed=fixed or None, base_dir=base)
 t_again = time.perf_counter() - t1
@@ -194,31 +200,50 @@ r = R.cached_renderer(scene, mat, jnp.dtype(jnp.float64), base)
 t_r, t_j = B.step_times(r, mat.full_params(truth), list(res.free))
 print(json.dumps({"first": t_first, "again": t_again, "steps": res.iterations,
                   "render_ms": t_r, "jac_ms": t_j, "status": res.status,
+                  "compile": t_compile,
                   "params": {k: np.asarray(v).tolist() for k, v in res.params.items()},
                   "rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}))
 """
 
 
+def _fit_once(root, case, scene_of):
+    env = dict(os.environ, FITTER_CACHE_DIR="", PYTHONPATH=root)
+    code = _FIT % {"root": root, "case": case, "scene_of": scene_of}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, check=False, cwd=root)
+    line = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
+    if not line:
+        print(out.stderr[-2000:])
+        return None
+    return json.loads(line[-1])
+
+
 def cost(a):
-    env = dict(os.environ, FITTER_CACHE_DIR="", PYTHONPATH=ROOT)
-    print("\n| scene | first fit s | compiled fit s | steps | render ms | Jacobian ms | "
-          "peak RSS GB | status |")
-    print("|---|---|---|---|---|---|---|---|")
-    for scene_of in ("plastic", a.case):
-        code = _FIT % {"root": ROOT, "case": a.case, "scene_of": scene_of}
-        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                             text=True, check=False)
-        line = [ln for ln in out.stdout.splitlines() if ln.startswith("{")]
-        if not line:
-            print(out.stderr[-2000:])
-            continue
-        d = json.loads(line[-1])
+    trees = _trees.trees(a.before, "fitter-envlight-")
+    best = {}
+    for _ in range(a.repeat):  # interleaved: every tree and scene sees the same load
+        for name, root in trees:
+            for scene_of in ("plastic", a.case):
+                d = _fit_once(root, a.case, scene_of)
+                if d is None:
+                    continue
+                key = (name, scene_of)
+                if key in best:
+                    d.update({k: min(d[k], best[key][k]) for k in
+                              ("first", "again", "render_ms", "jac_ms", "compile", "rss_gb")
+                              if k in best[key]})
+                best[key] = d
+    print("\n| tree | scene | first fit s | of it compile s | compiled fit s | steps | render ms "
+          "| Jacobian ms | peak RSS GB | status |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for (name, scene_of), d in best.items():
         label = "point lights (baseline)" if scene_of == "plastic" else f"{a.case} (envmap)"
-        print(f"| {label} | {d['first']:.2f} | {d['again']:.2f} | {d['steps']} | "
-              f"{d['render_ms']:.1f} | {d['jac_ms']:.1f} | {d['rss_gb']:.2f} | {d['status']} |",
-              flush=True)
+        print(f"| {name} | {label} | {d['first']:.2f} | {d.get('compile', float('nan')):.2f} | "
+              f"{d['again']:.2f} | {d['steps']} | {d['render_ms']:.1f} | {d['jac_ms']:.1f} | "
+              f"{d['rss_gb']:.2f} | {d['status']} |", flush=True)
+    for (name, scene_of), d in best.items():
         if scene_of == a.case:
-            print("fitted:", {k: np.round(v, 5).tolist() for k, v in d["params"].items()})
+            print(f"fitted ({name}):", {k: np.round(v, 5).tolist() for k, v in d["params"].items()})
 
 
 def main():
@@ -228,6 +253,8 @@ def main():
     ap.add_argument("--variants", default="all", help="comma-separated labels, or all")
     ap.add_argument("--no-fit", action="store_true")
     ap.add_argument("--no-accuracy", action="store_true")
+    ap.add_argument("--before", help="git ref whose tree's fits to run too (git archive)")
+    ap.add_argument("--repeat", type=int, default=1, help="runs per fit; each figure's minimum")
     a = ap.parse_args()
     if not a.no_accuracy:
         accuracy(a)

@@ -171,3 +171,93 @@ def test_geometry_of_a_pixel_subset_equals_those_pixels_of_the_whole(sun_probe):
         return np.asarray(render_active(r.params({}), geo, r.env, r.sphere, material=mat,
                                         env_type="envmap"))
     np.testing.assert_allclose(values(part), values(whole)[rows], rtol=1e-12, atol=1e-15)
+
+
+def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
+    # The sun groups' cosines are computed per component in pieces (geometry._sun_group);
+    # reference: bsdf.base.cosines of JAX arrays (its other code path: np.cross-like
+    # jnp.cross and sums over the last axis) on the broadcast (L, Q, 3) directions,
+    # across piece boundaries and at h = 0 (light opposite the view) and h along n.
+    from fitter import geometry
+    from fitter.bsdf.base import Cosines, cosines
+
+    rng = np.random.default_rng(3)
+    unit = lambda a: a / np.linalg.norm(a, axis=-1, keepdims=True)  # noqa: E731
+    n, v = unit(rng.normal(size=(2, 301, 3)))
+    v[9] = unit(n[9] + 0.5 * v[9])  # in front of the surface, for the mirror pair
+    dirs = unit(rng.normal(size=(7, 3)))
+    dirs[0], dirs[1] = -v[4], unit(2 * (n[9] @ v[9]) * n[9] - v[9])
+    w = 0.5 + rng.random(301)
+    monkeypatch.setattr(geometry, "SUN_CHUNK", 50)  # 7 pieces of 7 lights x 7 samples
+    _, cos, weight, _ = geometry._sun_group(n, v, w, np.arange(301), dirs, np.ones((7, 3)))
+    d = jnp.broadcast_to(jnp.asarray(dirs)[:, None], (7, 301, 3))
+    ref = Cosines(*(np.asarray(a) for a in cosines(jnp.broadcast_to(jnp.asarray(n), d.shape), d,
+                                                   jnp.broadcast_to(jnp.asarray(v), d.shape))))
+    lit = (ref.cos_i > 0) & (ref.cos_o > 0)
+    np.testing.assert_array_equal(weight > 0, lit)  # w > 0 everywhere
+    for got, want, stand_in in zip(cos, ref, Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)):
+        np.testing.assert_allclose(got, np.where(lit, want, stand_in), rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(weight, np.where(lit, w * ref.cos_i, 0.0), rtol=1e-13, atol=1e-15)
+    assert lit.any() and not lit.all()
+    raw = geometry._pair_cosines(n, v, dirs)  # before the stand-ins: every pair
+    dn = np.broadcast_to(dirs[:, None], (7, 301, 3))  # and cosines' own NumPy path
+    host = cosines(np.broadcast_to(n, dn.shape), dn, np.broadcast_to(v, dn.shape))
+    for got, also, want in zip(raw, host, ref):
+        np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-15)
+        np.testing.assert_array_equal(also, got)  # the same sums in the same order
+    assert raw.cos_h[0, 4] == 0 and raw.tan2_h[0, 4] == 0  # h = 0
+    assert raw.tan2_h[1, 9] < 1e-20 and raw.cos_h[1, 9] > 1 - 1e-12  # h along n
+
+
+def _env_problem(sun_probe):
+    from fitter.fit._setup import Problem
+
+    scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe))
+    mat = Material.make(["lambert", "torrance_sparrow"], {"torrance_sparrow.geometry": "smith"})
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "torrance_sparrow.m": 0.15,
+             "torrance_sparrow.eta": 1.5}
+    target = np.asarray(render(truth, scene, mat))
+    return Problem.make(target[None], scene, mat, init=truth), truth
+
+
+def test_profile_residuals_in_batches_equal_one_point_at_a_time(sun_probe):
+    # With a sky table residuals_at evaluates SKY_BATCH points per pass (the profile's
+    # points); reference: the residuals of each point alone.
+    import functools
+
+    from fitter.fit import _compile
+    from fitter.fit._problem import residuals
+
+    problem, _ = _env_problem(sun_probe)
+    data = problem.data(0)
+    z0 = np.asarray(problem.z_init())
+    zs = z0 + 0.05 * np.random.default_rng(4).normal(size=(2 * _compile.SKY_BATCH, z0.size))
+    batched = np.asarray(jax.jit(functools.partial(_compile.residuals_at, problem.spec))(
+        jnp.asarray(zs), data))
+    one = jax.jit(lambda z: residuals(z, data, problem.spec))
+    alone = np.stack([np.asarray(one(jnp.asarray(z))) for z in zs])
+    assert np.abs(alone).max() > 0
+    # Rounding only: the batched product sums the 690 cells in another order (the
+    # residuals are differences of values up to ~1, hence the absolute bound).
+    np.testing.assert_allclose(batched, alone, rtol=1e-12, atol=1e-13)
+
+
+def test_discretisation_check_keeps_its_finer_geometries(sun_probe, monkeypatch):
+    # A second finer_values of the same scene and pixels (a refit) takes the finer
+    # geometries it kept (no rebuild) and gives the same values; other pixels rebuild.
+    from fitter.fit import _discretisation as D
+
+    problem, truth = _env_problem(sun_probe)
+    params = problem.renderer.material.full_params(truth)
+    D._GEOMETRIES.clear()
+    first = D.finer_values(problem, params)
+    built = []
+    real = D.build_geometry
+    monkeypatch.setattr(D, "build_geometry", lambda *a, **k: built.append(1) or real(*a, **k))
+    again = D.finer_values(problem, params)
+    assert not built
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a, b)
+    part = D.finer_values(problem, params, rows=np.arange(0, len(problem.rows), 3))
+    assert built
+    np.testing.assert_allclose(part[0], first[0][::3], rtol=1e-12, atol=1e-15)

@@ -136,19 +136,34 @@ def cosines(n, wi, wo) -> Cosines:
     JAX arrays give JAX arrays (differentiable); NumPy arrays are computed in
     NumPy, as the renderer tabulates them once per scene.
     """
-    xp = np if all(isinstance(a, np.ndarray) for a in (n, wi, wo)) else jnp
-    if xp is np:  # the same sums as np.sum(a * b, -1), 2.3x faster (no reduction over 3)
-        dot_ = lambda a, b: a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]  # noqa: E731,E501
-    else:
-        dot_ = lambda a, b: xp.sum(a * b, axis=-1)  # noqa: E731
+    if all(isinstance(a, np.ndarray) for a in (n, wi, wo)):
+        return _cosines_np(n, wi, wo)
+    dot_ = lambda a, b: jnp.sum(a * b, axis=-1)  # noqa: E731
     ci, co = dot_(n, wi), dot_(n, wo)
     h = wi + wo
     hh = dot_(h, h)
     nh = dot_(n, h)
     up = (nh > 0) & (hh > 0)
-    inv = xp.where(up, 1.0 / xp.sqrt(xp.where(up, hh, 1.0)), 0.0)
-    cr = xp.cross(n, h)
-    tan2 = xp.where(up, dot_(cr, cr) / xp.where(up, nh * nh, 1.0), 0.0)
+    inv = jnp.where(up, 1.0 / jnp.sqrt(jnp.where(up, hh, 1.0)), 0.0)
+    cr = jnp.cross(n, h)
+    tan2 = jnp.where(up, dot_(cr, cr) / jnp.where(up, nh * nh, 1.0), 0.0)
+    return Cosines(ci, co, dot_(wi, wo), nh * inv, dot_(wo, h) * inv, tan2)
+
+
+def _cosines_np(n, wi, wo) -> Cosines:
+    """``cosines`` in NumPy per component (broadcasting as the arrays do): the same
+    sums in the same order as the JAX path's, without np.cross's copies (1.2 s of
+    a scene's sky tabulation at 97 x 5520 points)."""
+    n, wi, wo = ((a[..., 0], a[..., 1], a[..., 2]) for a in (n, wi, wo))
+    dot_ = lambda a, b: a[0] * b[0] + a[1] * b[1] + a[2] * b[2]  # noqa: E731
+    ci, co = dot_(n, wi), dot_(n, wo)
+    h = tuple(a + b for a, b in zip(wi, wo))
+    hh = dot_(h, h)
+    nh = dot_(n, h)
+    up = (nh > 0) & (hh > 0)
+    inv = np.where(up, 1.0 / np.sqrt(np.where(up, hh, 1.0)), 0.0)
+    cr = (n[1] * h[2] - n[2] * h[1], n[2] * h[0] - n[0] * h[2], n[0] * h[1] - n[1] * h[0])
+    tan2 = np.where(up, dot_(cr, cr) / np.where(up, nh * nh, 1.0), 0.0)
     return Cosines(ci, co, dot_(wi, wo), nh * inv, dot_(wo, h) * inv, tan2)
 
 

@@ -88,6 +88,12 @@ def finer_material(material):
     return Material.make(material.lobes, opts, exposure=material.exposure)
 
 
+def _to_device(a):
+    if isinstance(a, jax.Array):
+        return a
+    return to_device(a, np.float64) if np.asarray(a).dtype.kind == "f" else to_device(a)
+
+
 #: Executables of ``_render`` in this process, by structure and shapes (the last few).
 _EXECUTABLES: dict = {}
 _KEEP_EXECUTABLES = 8
@@ -99,12 +105,7 @@ def _render(params, geo, env, sphere, material, env_type) -> np.ndarray:
     (``_cache.compile_cached``): a repeated ``fitter fit`` loads it instead of
     tracing the renderer (0.1 s). Host arrays go to the device as float64
     (``to_device``: no copy kernel per shape); device arrays as they are."""
-    def put(a):
-        if isinstance(a, jax.Array):
-            return a
-        return to_device(a, np.float64) if np.asarray(a).dtype.kind == "f" else to_device(a)
-
-    args = jax.tree_util.tree_map(put, (params, geo, env, sphere))
+    args = jax.tree_util.tree_map(_to_device, (params, geo, env, sphere))
     shapes = jax.tree_util.tree_map(lambda a: (a.shape, str(a.dtype)), args)
     key = repr(("discretisation_render", material, env_type, str(shapes)))
     exe = _EXECUTABLES.pop(key, None)
@@ -170,7 +171,10 @@ def prefetch(problem) -> None:
     fine = scene.replace(supersampling=finer_supersampling(scene))
     if flat.size * fine.supersampling**2 > PREFETCH_SAMPLES:
         return
-    env64 = load_environment(scene.environment, getattr(problem, "base_dir", None))
+    base = getattr(problem, "base_dir", None)
+    if (fine, base, r.env_type, False, flat.tobytes()) in _GEOMETRIES:  # a refit: kept
+        return
+    env64 = load_environment(scene.environment, base)
     box: list = [None]
 
     def make():
@@ -185,9 +189,22 @@ def prefetch(problem) -> None:
     thread.start()
 
 
-def _values(scene, material, env64, lighting, flat, params, env_type):
-    """(values (P, 3), coverage (P,)) of the pixels ``flat`` (flat indices) of
-    ``scene`` lit by its lights and ``lighting`` (``geometry.build_geometry``)."""
+#: The finer geometries of the last ``finer_values`` calls (on the device), kept
+#: for a refit of the same scene and pixels: building them again (the sun's cells
+#: x 2k samples) was 1.6 s of a compiled env_plastic fit's 5.9 s. At most
+#: ``_KEEP_BYTES`` in all (env_plastic's three: ~0.4 GB), so a large image's finer
+#: geometry is not held after its fit.
+_GEOMETRIES: dict = {}
+_KEEP_GEOMETRIES = 3
+_KEEP_BYTES = 2**29
+
+
+def _geometry(scene, env64, lighting, flat, env_type, key):
+    """(geometry of the pixels ``flat`` found, on the device; found (P,) bool;
+    coverage (P,)): kept under ``key`` (``_GEOMETRIES``) unless it is None,
+    else the one ``prefetch`` made, else made here."""
+    if key is not None and key in _GEOMETRIES:
+        return _GEOMETRIES[key]
     ahead = _AHEAD.pop(_ahead_key(scene, flat), None) if lighting is None else None
     if ahead is not None:
         ahead[0].join()
@@ -196,15 +213,34 @@ def _values(scene, material, env64, lighting, flat, params, env_type):
     index = np.asarray(geo.pixel_index)
     at = np.minimum(np.searchsorted(index, flat), max(index.size - 1, 0))
     found = index[at] == flat if index.size else np.zeros(flat.size, bool)
-    sub = geo.subset(at[found])
+    rows = at[found]
+    # Usually every pixel asked for is active, in order: no copy of the sun's (L, Q) arrays.
+    sub = geo if np.array_equal(rows, np.arange(index.size)) else geo.subset(rows)
+    coverage = np.zeros(flat.size)
+    coverage[found] = np.asarray(sub.hit, dtype=np.float64) @ np.asarray(sub.sample_weight)
+    sub = jax.tree_util.tree_map(_to_device, sub._replace(pixel_index=None,
+                                                          background_image=None))
+    out = sub, found, coverage
+    if key is not None:
+        _GEOMETRIES[key] = out
+        size = lambda g: sum(a.nbytes for a in jax.tree_util.tree_leaves(g[0]))  # noqa: E731
+        while _GEOMETRIES and (len(_GEOMETRIES) > _KEEP_GEOMETRIES or
+                               sum(size(g) for g in _GEOMETRIES.values()) > _KEEP_BYTES):
+            _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
+    return out
+
+
+def _values(scene, material, env64, lighting, flat, params, env_type, key=None):
+    """(values (P, 3), coverage (P,)) of the pixels ``flat`` (flat indices) of
+    ``scene`` lit by its lights and ``lighting`` (``geometry.build_geometry``);
+    ``key``: what identifies that geometry (scene, environment, sun cells,
+    pixels) to keep it for a refit (``_geometry``), or None."""
+    sub, found, coverage = _geometry(scene, env64, lighting, flat, env_type, key)
     sphere = (np.asarray(scene.sphere.center, np.float64),
               np.asarray(scene.sphere.radius, np.float64))
     vals = np.zeros((flat.size, 3))
     vals[found] = _render({k: np.asarray(v, np.float64) for k, v in params.items()},
-                          sub._replace(pixel_index=None, background_image=None), env64,
-                          sphere, material, env_type)
-    coverage = np.zeros(flat.size)
-    coverage[found] = np.asarray(sub.hit, dtype=np.float64) @ np.asarray(sub.sample_weight)
+                          sub, env64, sphere, material, env_type)
     return vals, coverage
 
 
@@ -232,12 +268,17 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
     lit = envlight.lit_by_environment(scene, material)
     sun = _sun_only(scene, env64, (envlight.SUN_CELL, envlight.SUN_SUB)) if lit else None
     fine = scene.replace(supersampling=finer_supersampling(scene))
-    vals, coverage = _values(fine, finer_material(material), env64, sun, flat, params, env_type)
+    base = getattr(problem, "base_dir", None)
+    key = lambda s, cells: (s, base, env_type, lit and cells, flat.tobytes())  # noqa: E731
+    vals, coverage = _values(fine, finer_material(material), env64, sun, flat, params, env_type,
+                             key(fine, (envlight.SUN_CELL, envlight.SUN_SUB)))
     if sun is not None and sun.sun_dir.shape[0]:
         finer_sun = _sun_only(scene, env64, FINER_SUN)
-        more = _values(scene, material, env64, finer_sun, flat, params, env_type)[0]
+        more = _values(scene, material, env64, finer_sun, flat, params, env_type,
+                       key(scene, FINER_SUN))[0]
         if coarse is None:
-            coarse = _values(scene, material, env64, sun, flat, params, env_type)[0]
+            coarse = _values(scene, material, env64, sun, flat, params, env_type,
+                             key(scene, (envlight.SUN_CELL, envlight.SUN_SUB)))[0]
         vals = vals + more - coarse
     return vals, coverage
 
