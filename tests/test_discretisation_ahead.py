@@ -28,11 +28,13 @@ def test_the_finer_geometry_made_ahead_gives_the_same_stated_errors(monkeypatch)
         return build(scene, *args, **kwargs)
 
     monkeypatch.setattr(_discretisation, "build_geometry", recorded)
+    monkeypatch.setattr(_discretisation, "_GEOMETRIES", {})  # none kept from other fits
     ahead = fitter.fit(target, SCENE, "lambert+torrance_sparrow")
     assert made_on == [(4, "fitter-finer-geometry")]
     assert not _discretisation._AHEAD  # used, not kept
 
     made_on.clear()
+    _discretisation._GEOMETRIES.clear()  # a refit would reuse the kept one
     monkeypatch.setattr(_discretisation, "prefetch", lambda problem: None)
     here = fitter.fit(target, SCENE, "lambert+torrance_sparrow")
     assert made_on == [(4, threading.main_thread().name)]
