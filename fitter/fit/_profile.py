@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-#: The subset on (benchmarks/profile.py compares it with every pixel).
+#: The subset on (benchmarks/profile_subset.py compares it with every pixel).
 ENABLED = True
 #: Below this many fitted pixels the profile runs on all of them (the subset
 #: would save little and cost a compile of its own).
@@ -53,12 +53,14 @@ def standing_out(J, dzs) -> np.ndarray:
     feature (a refracted sun, an edge) the body's stride would under-sample.
     ``J`` (3P, n), ``dzs`` (k, n)."""
     J = np.asarray(J, dtype=np.float64)
-    out = np.zeros(J.shape[0] // 3, dtype=bool)
-    for dz in np.asarray(dzs, dtype=np.float64):
-        v = (J @ dz).reshape(-1, 3)
-        v = np.sum(v * v, axis=1)
-        out |= v > STAND_OUT * max(float(v.mean()), 1e-300)
-    return out
+    dzs = np.asarray(dzs, dtype=np.float64)
+    # The ratio does not change with the step's length or sign: one per direction.
+    dirs = dzs / np.maximum(np.linalg.norm(dzs, axis=1, keepdims=True), 1e-300)
+    lead = np.take_along_axis(dirs, np.argmax(np.abs(dirs), axis=1)[:, None], axis=1)
+    dirs = np.unique(np.round(dirs * np.sign(lead), 9), axis=0)
+    v = (J @ dirs.T).reshape(-1, 3, len(dirs))
+    v = np.sum(v * v, axis=1)  # (P, directions)
+    return np.any(v > STAND_OUT * np.maximum(v.mean(axis=0), 1e-300), axis=1)
 
 
 def subset_rows(labels, stride: int = BODY_STRIDE):
@@ -119,7 +121,8 @@ def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float):
     r0, lin = r[idx], dzs @ J[idx].T
     k = len(dzs)
     # Per picked pixel: the rise minus its quadratic part, e_p (k, M).
-    e = (0.5 * (r_sub * r_sub - r0 * r0) - (r0 * lin + 0.5 * lin * lin)).reshape(k, -1, 3).sum(-1)
+    lin += r0  # the linearised residuals at each point
+    e = (0.5 * (r_sub - lin) * (r_sub + lin)).reshape(k, -1, 3).sum(-1)
     rest = e @ weight
     var = (e * e) @ (weight * np.maximum(weight - 1.0, 0.0))
     return 2.0 * (quad + rest) / s2, 2.0 * np.sqrt(var) / s2

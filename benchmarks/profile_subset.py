@@ -10,7 +10,7 @@ way, interleaved; the table gives the minima, the verdicts and the largest
 |estimated - whole-image| chi^2 rise over the points. Then whole
 ``fitter.fit`` calls, subset on and off interleaved (minima).
 
-    python benchmarks/profile.py [--repeat 5]
+    python benchmarks/profile_subset.py [--repeat 5]
 """
 
 from __future__ import annotations
