@@ -27,8 +27,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _plastic():
-    import fitter
     from error_vs_time import load_job
+
+    import fitter
 
     job, base = load_job("plastic", 256)
     truth = job.material.full_params({**job.fixed, **job.truth})
@@ -67,7 +68,7 @@ def rises(args, subset: bool):
 
     _identify.profile_verdict = spy
     try:
-        why, starts, sec = _identify.weak_profile(*args)
+        why, _, sec = _identify.weak_profile(*args)
     finally:
         _identify.profile_verdict = verdict
         _profile.ENABLED = True
@@ -85,13 +86,13 @@ def main(argv=None) -> int:
     makers = {"plastic 256²": _plastic, "dielectric 128²": _dielectric}
     for name in args.cases:
         run = makers[name]()
-        captured = []
-        real = _drivers.weak_profile
+        captured: list = []
 
-        def capture(*a, **k):
+        def capture(*a, captured=captured, real=_drivers.weak_profile, **k):
             captured.append(a)
             return real(*a, **k)
 
+        real = _drivers.weak_profile
         _drivers.weak_profile = capture
         try:
             res = run()  # compiles the fit and both profiles' executables

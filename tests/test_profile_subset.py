@@ -85,7 +85,7 @@ def test_subset_verdict_equals_every_pixels(monkeypatch, eta):
     sub = _profile.subset_costs(spec, data, z, J, r, s2, cost, points, level,
                                 _identify.PROFILE_FLAT)
     assert sub is not None
-    verdict = lambda c: _identify.profile_verdict(  # noqa: E731
+    verdict = lambda c: _identify.profile_verdict(
         s2, cost, [(t, zt, float(ci)) for (t, zt), ci in zip(points, c)])[0]
     why_whole, why_sub = verdict(whole), verdict(sub)
     assert (why_whole is None) == (why_sub is None), (why_whole, why_sub)
