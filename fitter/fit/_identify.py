@@ -247,7 +247,7 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma, subset: bool = True):
 
     from scipy.special import chdtri
 
-    from ._compile import costs_at, jac_full, remember_jacobian
+    from ._compile import costs_at
     from ._covariance import residual_variance
     from ._profile import subset_costs
 
@@ -258,7 +258,7 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma, subset: bool = True):
     points = profile_points(spec, z, J, s2)
     costs = None
     if points and subset:
-        J_full = _remembered_jacobian(spec, z, data, r, jac_full, remember_jacobian)
+        J_full = _remembered_jacobian(spec, z, data, r)
         costs = subset_costs(spec, data, z, J_full, r, s2, cost, points,
                              chdtri(1, 1.0 - AMBIGUOUS_LEVEL), PROFILE_FLAT)
     if costs is None:
@@ -268,11 +268,14 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma, subset: bool = True):
     return why, np.asarray(starts).reshape(-1, np.size(z)), time.perf_counter() - t0
 
 
-def _remembered_jacobian(spec: Spec, z, data, r, jac_full, remember):
-    """The solver's whole Jacobian at ``z`` if it was remembered with these
-    residuals (kept remembered for the verdict's sandwich), else None."""
+def _remembered_jacobian(spec: Spec, z, data, r):
+    """The whole Jacobian (N, n) at ``z`` if its residuals are ``r``, else
+    None: the solver's, which the drivers remember (linearised anew
+    otherwise), and left remembered for the verdict's sandwich."""
+    from ._compile import jac_full, remember_jacobian
+
     J, r_known, _ = jac_full(spec, z, data)
-    remember(spec, z, data, J, r_known)
+    remember_jacobian(spec, z, data, J, r_known)
     if np.shape(r_known) != np.shape(r) or not np.array_equal(r_known, r):
         return None
     return J
