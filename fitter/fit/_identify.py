@@ -233,25 +233,50 @@ def profile_verdict(s2: float, cost: float, profile) -> tuple[str | None, list]:
     return why, starts
 
 
-def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
+def weak_profile(spec: Spec, data, z, J, r, noise_sigma, subset: bool = True):
     """The cost profile along the weakest direction of a one-start fit:
     (why several starts are needed or None, start points (k, n), seconds).
 
     ``J``: the Jacobian's R factor at ``z``, ``r`` the residuals there. The
     points cost one residual evaluation each, in one compiled call
-    (``_compile.costs_at``; no Jacobian).
+    (``_compile.costs_at``; no Jacobian). ``subset``: where the solver's whole
+    Jacobian at ``z`` is at hand (``_compile.jac_full`` of a remembered
+    solution), on the pixel subset of ``_profile.subset_costs`` (exact where
+    the model is linear in z, guarded by its standard error elsewhere).
     """
     import time
 
+    from scipy.special import chdtri
+
     from ._compile import costs_at
     from ._covariance import residual_variance
+    from ._profile import subset_costs
 
     t0 = time.perf_counter()
     r = np.asarray(r, dtype=np.float64)
     s2 = residual_variance(noise_sigma, data, r, spec)
     cost = 0.5 * float(r @ r)
     points = profile_points(spec, z, J, s2)
-    costs = costs_at(spec, np.stack([zt for _, zt in points]), data) if points else []
+    costs = None
+    if points and subset:
+        J_full = _remembered_jacobian(spec, z, data, r)
+        costs = subset_costs(spec, data, z, J_full, r, s2, cost, points,
+                             chdtri(1, 1.0 - AMBIGUOUS_LEVEL), PROFILE_FLAT)
+    if costs is None:
+        costs = costs_at(spec, np.stack([zt for _, zt in points]), data) if points else []
     evaluated = [(t, zt, float(c)) for (t, zt), c in zip(points, costs)]
     why, starts = profile_verdict(s2, cost, evaluated)
     return why, np.asarray(starts).reshape(-1, np.size(z)), time.perf_counter() - t0
+
+
+def _remembered_jacobian(spec: Spec, z, data, r):
+    """The whole Jacobian (N, n) at ``z`` if its residuals are ``r``, else
+    None: the solver's, which the drivers remember (linearised anew
+    otherwise), and left remembered for the verdict's sandwich."""
+    from ._compile import jac_full, remember_jacobian
+
+    J, r_known, _ = jac_full(spec, z, data)
+    remember_jacobian(spec, z, data, J, r_known)
+    if np.shape(r_known) != np.shape(r) or not np.array_equal(r_known, r):
+        return None
+    return J

@@ -1,0 +1,140 @@
+"""The post-fit cost profile (``fitter.fit._identify.weak_profile``) on the pixel
+subset (``fitter.fit._profile``) against every pixel, in one process.
+
+Cases: 256^2 plastic (lambert + torrance_sparrow, 4x4 samples, JAX target at
+the truth + noise sigma 2e-3, from the lobe defaults) and the 128^2 dielectric
+(``configs/dielectric.toml`` on its Mitsuba target, from the config's start).
+Each case is fitted once (compiling everything), the profile's inputs are
+captured at the fit's solution, then the profile runs ``--repeat`` times each
+way, interleaved; the table gives the minima, the verdicts and the largest
+|estimated - whole-image| chi^2 rise over the points. Then whole
+``fitter.fit`` calls, subset on and off interleaved (minima).
+
+    python benchmarks/profile_subset.py [--repeat 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _plastic():
+    from error_vs_time import load_job
+
+    import fitter
+
+    job, base = load_job("plastic", 256)
+    truth = job.material.full_params({**job.fixed, **job.truth})
+    clean = np.asarray(fitter.render(truth, job.scene, job.material, base_dir=base))
+    target = clean + np.random.default_rng(0).normal(0.0, 2e-3, clean.shape)
+    return lambda: fitter.fit(target, job.scene, job.material, fixed=job.fixed, base_dir=base)
+
+
+def _dielectric():
+    import fitter
+    from fitter import config, pipeline
+
+    job = config.load_config(os.path.join(ROOT, "configs/dielectric.toml"))
+    target, _ = pipeline.read_target(job.fit.target, job.scene)
+    return lambda: fitter.fit(target, job.scene, job.material, init=job.init, fixed=job.fixed,
+                              base_dir=job.base_dir)
+
+
+def rises(args, subset: bool):
+    """(chi^2 rises at the profile's points, the verdict, seconds)."""
+    from fitter.fit import _compile, _identify, _profile
+
+    spec, data, z, R, _, sigma = args
+    # The fit's verdict used its remembered Jacobian: linearise again at z
+    # (and profile from these residuals, with which it is remembered).
+    J, rr, _ = _compile.jac_full(spec, z, data)
+    _compile.remember_jacobian(spec, z, data, J, rr)
+    args = (spec, data, z, R, rr, sigma)
+    _profile.ENABLED = subset
+    seen = {}
+    verdict = _identify.profile_verdict
+
+    def spy(s2, cost, profile):
+        seen["rise"] = np.array([2 * (c - cost) / s2 for _, _, c in profile])
+        return verdict(s2, cost, profile)
+
+    _identify.profile_verdict = spy
+    try:
+        why, _, sec = _identify.weak_profile(*args)
+    finally:
+        _identify.profile_verdict = verdict
+        _profile.ENABLED = True
+    return seen.get("rise", np.zeros(0)), why, sec
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--cases", nargs="*", default=["plastic 256²", "dielectric 128²"])
+    args = ap.parse_args(argv)
+
+    from fitter.fit import _drivers, _profile
+
+    makers = {"plastic 256²": _plastic, "dielectric 128²": _dielectric}
+    for name in args.cases:
+        run = makers[name]()
+        captured: list = []
+
+        def capture(*a, captured=captured, real=_drivers.weak_profile, **k):
+            captured.append(a)
+            return real(*a, **k)
+
+        real = _drivers.weak_profile
+        _drivers.weak_profile = capture
+        try:
+            res = run()  # compiles the fit and both profiles' executables
+        finally:
+            _drivers.weak_profile = real
+        if not captured:
+            print(f"{name}: the profile did not run ({res.status})")
+            continue
+        a = captured[-1]
+        rises(a, False)
+        times = {True: [], False: []}
+        for _ in range(args.repeat):
+            for subset in (False, True):
+                rise, why, sec = rises(a, subset)
+                times[subset].append(sec)
+                if subset:
+                    est, why_sub = rise, why
+                else:
+                    full, why_full = rise, why
+        fits = {True: [], False: []}
+        for _ in range(args.repeat):
+            for subset in (False, True):
+                _profile.ENABLED = subset
+                t0 = time.perf_counter()
+                out = run()
+                fits[subset].append(time.perf_counter() - t0)
+                _profile.ENABLED = True
+                if subset:
+                    p_sub = out.params
+                else:
+                    p_full = out.params
+        same = all(np.array_equal(np.asarray(p_sub[k]), np.asarray(p_full[k])) for k in p_sub)
+        print(f"{name}: {len(full)} points; profile stage min {min(times[False]):.3f} s "
+              f"(every pixel) -> {min(times[True]):.3f} s (subset), "
+              f"x{min(times[False]) / min(times[True]):.1f}; verdict {why_full!r} / "
+              f"{why_sub!r}; max |rise est - rise| {np.max(np.abs(est - full)):.3g} "
+              f"(rises {np.min(full):.3g}..{np.max(full):.3g}); fitter.fit min "
+              f"{min(fits[False]):.3f} -> {min(fits[True]):.3f} s; fitted values equal: {same}")
+    load = os.getloadavg()
+    print(f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

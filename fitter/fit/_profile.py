@@ -1,0 +1,172 @@
+"""The post-fit cost profile (``_identify.weak_profile``) on a pixel subset.
+
+The profile's points are 6(n+1) full residual evaluations, most of a compiled
+fit's time at 256^2. The cost rise at a point splits, per pixel p with model
+change dm_p = J_p dz + a_p, into the Gauss-Newton quadratic
+
+    q = sum_p r_p . J_p dz + |J_p dz|^2 / 2        (exact, from the solver's J)
+
+and a remainder e = sum_p e_p, e_p = r_p . a_p + (J_p dz) . a_p + |a_p|^2 / 2,
+which is zero where the model is linear in z. Only the remainder is estimated
+from a subset of pixels: every highlight and rim pixel (weight 1: where the
+model is sharp, ``_adequacy.pixel_regions``, and pixels whose linear response
+stands out, ``standing_out``) and every ``BODY_STRIDE``-th body pixel (weight:
+body pixels per pick), a Horvitz-Thompson sum with variance
+estimate sum_picked W (W - 1) e_p^2 (Horvitz & Thompson 1952; Poisson
+sampling with inclusion probability 1 / W). So the estimated rise equals the
+full one exactly when the residuals are linear in z, and a point whose
+estimate lies within ``GUARD`` estimated standard errors of a verdict's
+threshold (its error in quadrature with ``SE_FLOOR``) is evaluated on the
+whole image (``costs_at``), as before.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+#: The subset on (benchmarks/profile_subset.py compares it with every pixel).
+ENABLED = True
+#: Below this many fitted pixels the profile runs on all of them (the subset
+#: would save little and cost a compile of its own).
+MIN_PIXELS = 4096
+#: Body pixels (away from highlights and the rim) the subset keeps: every this
+#: many-th, each standing for this many. Measured (``benchmarks/profile_subset.py``,
+#: stride 8 / 16): estimated rises off by at most 0.61 / 0.62 (256^2 plastic) and
+#: 0.84 / 0.87 (128^2 dielectric) of their guarded standard errors (``GUARD``).
+BODY_STRIDE = 16
+#: A point whose estimated chi^2 rise is within this many of its estimated
+#: standard errors of a threshold of ``profile_verdict`` (0, and
+#: ``PROFILE_FLAT`` t^2) is evaluated on every pixel instead.
+GUARD = 4.0
+#: Added (in quadrature) to the estimated standard error, in chi^2: the
+#: Poisson variance misses structure of the remainder (measured on the 128^2
+#: dielectric, stride 8: errors up to 0.14 where it stated 0.02; 4-40 at
+#: rises of 900 where it stated 3-50).
+SE_FLOOR = 0.5
+#: A pixel whose linear response to a profile step is this many times the
+#: step's mean response is taken whole (``standing_out``).
+STAND_OUT = 10.0
+
+
+def standing_out(J, dzs) -> np.ndarray:
+    """(P,) bool: pixels whose linear response |J_p dz|^2 to some profile step
+    dz exceeds ``STAND_OUT`` times that step's mean over the pixels: a
+    feature (a refracted sun, an edge) the body's stride would under-sample.
+    ``J`` (3P, n), ``dzs`` (k, n)."""
+    J = np.asarray(J, dtype=np.float64)
+    dzs = np.asarray(dzs, dtype=np.float64)
+    # The ratio does not change with the step's length or sign: one per direction.
+    dirs = dzs / np.maximum(np.linalg.norm(dzs, axis=1, keepdims=True), 1e-300)
+    lead = np.take_along_axis(dirs, np.argmax(np.abs(dirs), axis=1)[:, None], axis=1)
+    dirs = np.unique(np.round(dirs * np.sign(lead), 9), axis=0)
+    v = (J @ dirs.T).reshape(-1, 3, len(dirs))
+    v = np.sum(v * v, axis=1)  # (P, directions)
+    return np.any(v > STAND_OUT * np.maximum(v.mean(axis=0), 1e-300), axis=1)
+
+
+def subset_rows(labels, stride: int = BODY_STRIDE, sharp_stride: int = 1):
+    """(rows (M,), weights (M,)) of the fitted pixels the profile evaluates:
+    every ``sharp_stride``-th highlight and rim pixel (``labels`` 1, 2), every
+    pixel standing out (``labels`` 3), every ``stride``-th body pixel (0),
+    each weighted by its stratum's pixels per pick; then padded with unpicked
+    pixels of weight 0 to a size of 2^(k/8) pixels (one compile serves fits
+    of similar subsets). None when the subset would not be smaller."""
+    labels = np.asarray(labels)
+    rows, weight, spare = [], [], []
+    for lab, step in ((0, stride), (1, sharp_stride), (2, sharp_stride), (3, 1)):
+        all_ = np.nonzero(labels == lab)[0]
+        picked = all_[::step]
+        rows.append(picked)
+        weight.append(np.full(picked.size, all_.size / max(picked.size, 1)))
+        spare.append(np.setdiff1d(all_, picked, assume_unique=True))
+    m = sum(a.size for a in rows)
+    size = int(np.ceil(2.0 ** (np.ceil(8.0 * np.log2(max(m, 1))) / 8.0)))
+    spare = np.concatenate(spare)
+    if size > 0.5 * labels.size or size - m > spare.size:
+        return None
+    rows = np.concatenate(rows + [spare[:size - m]])
+    weight = np.concatenate(weight + [np.zeros(size - m)])
+    order = np.argsort(rows)
+    return rows[order], weight[order]
+
+
+def subset_data(data, rows):
+    """``data`` with the fitted pixels ``rows`` only (arrays of the same dtypes)."""
+    geo = data.geometry
+    # The fit's geometry drops pixel_index (``_setup``); subset indexes it.
+    geo = geo._replace(pixel_index=np.zeros(np.shape(data.target)[0], np.int64))
+    geo = jax.tree_util.tree_map(jnp.asarray, geo.subset(rows)._replace(pixel_index=None))
+    return data._replace(geometry=geo, target=jnp.asarray(data.target)[rows],
+                         weights=jnp.asarray(data.weights)[rows])
+
+
+def residuals_at_points(spec, zs, data) -> np.ndarray:
+    """Residuals (k, N) at each point of ``zs`` (k, n), float64 on the host."""
+    from ._compile import compiled
+
+    zs = jnp.asarray(zs, dtype=data.target.dtype)
+    exe, _ = compiled("residuals", spec, (zs, data))
+    return np.asarray(exe(zs, data), dtype=np.float64)
+
+
+def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float):
+    """(estimated chi^2 rises (k,), their standard errors (k,)) at z + dz.
+
+    ``J`` (N, n), ``r`` (N,): the whole Jacobian and residuals at z (3 per
+    pixel, channel fastest); ``dzs`` (k, n); ``r_sub`` (k, 3M): the residuals
+    of the pixels ``rows`` (M,) at each point, ``weight`` (M,) theirs.
+    """
+    J = np.asarray(J, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    dzs = np.asarray(dzs, dtype=np.float64)
+    # The whole quadratic (k,) from J^T r and J^T J: no (k, N) array.
+    quad = dzs @ (J.T @ r) + 0.5 * np.einsum("ki,ij,kj->k", dzs, J.T @ J, dzs)
+    idx = (3 * rows[:, None] + np.arange(3)).reshape(-1)
+    r0, lin = r[idx], dzs @ J[idx].T
+    k = len(dzs)
+    # Per picked pixel: the rise minus its quadratic part, e_p (k, M).
+    lin += r0  # the linearised residuals at each point
+    e = (0.5 * (r_sub - lin) * (r_sub + lin)).reshape(k, -1, 3).sum(-1)
+    rest = e @ weight
+    var = (e * e) @ (weight * np.maximum(weight - 1.0, 0.0))
+    return 2.0 * (quad + rest) / s2, 2.0 * np.sqrt(var) / s2
+
+
+def near_threshold(t: float, rise: float, se: float, level: float, flat: float) -> bool:
+    """Whether the verdict at a point could change within ``GUARD`` standard
+    errors of its estimated rise (thresholds of ``profile_verdict``)."""
+    thresholds = [0.0] + ([flat * t * t] if t * t > level else [])
+    se = np.hypot(se, SE_FLOOR)
+    return any(abs(rise - th) <= GUARD * se for th in thresholds)
+
+
+def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: float,
+                 flat: float, stride: int = BODY_STRIDE):
+    """Costs (k,) at ``points`` [(t, z_t)] for ``profile_verdict``: cost +
+    s2 / 2 times the estimated rise, or the whole image's cost where the
+    estimate is too close to a threshold; None when the subset does not apply
+    (too few pixels, or no whole Jacobian ``J``)."""
+    from ._adequacy import pixel_regions
+    from ._compile import costs_at
+
+    if not ENABLED or J is None or np.shape(J)[0] != np.size(r) or np.shape(data.target)[0] < MIN_PIXELS:
+        return None
+    zs = np.stack([zt for _, zt in points])
+    dzs = zs - np.asarray(z, dtype=np.float64)
+    labels = pixel_regions(data.geometry)
+    labels[(labels == 0) & standing_out(J, dzs)] = 3
+    picks = subset_rows(labels, stride)
+    if picks is None:
+        return None
+    rows, weight = picks
+    r_sub = residuals_at_points(spec, zs, subset_data(data, rows))
+    rise, se = estimated_rises(J, r, dzs, r_sub, rows, weight, s2)
+    costs = cost + 0.5 * s2 * rise
+    costs[~np.all(np.isfinite(r_sub), axis=1)] = np.nan  # a subset pixel's NaN is the image's
+    redo = [i for i, (t, _) in enumerate(points)
+            if np.isfinite(costs[i]) and near_threshold(t, rise[i], se[i], level, flat)]
+    if redo:
+        costs[redo] = costs_at(spec, zs[redo], data)
+    return costs

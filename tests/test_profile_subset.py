@@ -1,0 +1,98 @@
+"""The post-fit cost profile on a pixel subset (``fitter.fit._profile``).
+
+References: for linear residuals, the closed form 0.5 |r + J dz|^2 (the
+subset's estimate must equal it to round-off); on fits, the same profile
+evaluated on every pixel (``_compile.costs_at``, the code the subset replaces).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import chdtri
+
+import fitter
+from fitter.fit import _compile, _drivers, _identify, _profile
+from fitter.fit._adequacy import pixel_regions
+from fitter.fit._covariance import residual_variance
+
+LIGHTS = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),
+          fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0)))
+
+
+def test_estimate_is_exact_for_linear_residuals():
+    """Residuals linear in z: the remainder is zero on every pixel, so the
+    subset's estimated rise is the whole image's and its error estimate 0,
+    whichever pixels the subset holds."""
+    rng = np.random.default_rng(1)
+    P, n, k = 400, 4, 12
+    J, r = rng.normal(size=(3 * P, n)), rng.normal(size=3 * P)
+    dzs = rng.normal(size=(k, n)) * np.array([0.1, 1.0, 3.0, 10.0])
+    labels = np.where(rng.random(P) < 0.1, 1, 0)
+    rows, weight = _profile.subset_rows(labels, stride=8)
+    assert len(rows) < P // 2
+    full = r[None] + dzs @ J.T  # (k, 3P): the residuals at each point
+    idx = (3 * rows[:, None] + np.arange(3)).reshape(-1)
+    rise, se = _profile.estimated_rises(J, r, dzs, full[:, idx], rows, weight, s2=0.7)
+    exact = (np.sum(full * full, axis=1) - r @ r) / 0.7
+    np.testing.assert_allclose(rise, exact, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(se, 0.0, atol=1e-8 * np.abs(exact).max())
+
+
+def _profile_inputs(monkeypatch, eta: float):
+    """Fit a 64^2 lambert + torrance_sparrow sphere (eta given) with the subset
+    forced on; return the fit and the profile's inputs at its first solution,
+    with the solver's Jacobian remembered as the drivers leave it."""
+    monkeypatch.setattr(_profile, "MIN_PIXELS", 0)
+    scene = fitter.Scene(width=64, height=64, supersampling=2, lights=LIGHTS)
+    mat = fitter.Material.make("lambert+torrance_sparrow", {"torrance_sparrow.geometry": "smith"})
+    truth = {"lambert.rho_d": [0.5] * 3, "torrance_sparrow.m": 0.2, "torrance_sparrow.eta": eta}
+    clean = np.asarray(fitter.render(truth, scene, mat))
+    target = clean + np.random.default_rng(0).normal(0.0, 0.01 * clean.mean(), clean.shape)
+    seen = []
+    real = _drivers.weak_profile
+
+    def spy(*args, **kw):
+        spec, data, z = args[:3]
+        J, r, _ = _compile.jac_full(spec, z, data)
+        _compile.remember_jacobian(spec, z, data, J, r)
+        seen.append((args, J))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(_drivers, "weak_profile", spy)
+    res = fitter.fit(target, scene, mat)
+    assert seen, res.message
+    return res, seen[0]
+
+
+@pytest.mark.parametrize("eta", [1.001, 1.5])
+def test_subset_verdict_equals_every_pixels(monkeypatch, eta):
+    """eta = 1.001 (m has no effect: a flat valley, ``test_fit_identifiability``)
+    triggers the re-solve, eta = 1.5 does not; the subset (a third of the
+    pixels here) gives the verdict the whole image gives, and on the smooth
+    case chi^2 rises within 2 % (+ 0.5) of the whole image's."""
+    res, ((spec, data, z, R, r, sigma), J) = _profile_inputs(monkeypatch, eta)
+    s2 = residual_variance(sigma, data, r, spec)
+    cost = 0.5 * float(r @ r)
+    points = _identify.profile_points(spec, z, R, s2)
+    zs = np.stack([zt for _, zt in points])
+    whole = _compile.costs_at(spec, zs, data)
+    labels = pixel_regions(data.geometry)
+    labels[(labels == 0) & _profile.standing_out(J, zs - z)] = 3
+    picks = _profile.subset_rows(labels)
+    assert picks is not None and len(picks[0]) < 0.5 * np.shape(data.target)[0]
+    level = chdtri(1, 0.05)  # the 95 % quantile of chi^2 with 1 dof
+    sub = _profile.subset_costs(spec, data, z, J, r, s2, cost, points, level,
+                                _identify.PROFILE_FLAT)
+    assert sub is not None
+    verdict = lambda c: _identify.profile_verdict(
+        s2, cost, [(t, zt, float(ci)) for (t, zt), ci in zip(points, c)])[0]
+    why_whole, why_sub = verdict(whole), verdict(sub)
+    assert (why_whole is None) == (why_sub is None), (why_whole, why_sub)
+    if eta < 1.01:
+        assert "flat valley" in why_whole and "flat valley" in why_sub
+        assert "torrance_sparrow.m" in res.unidentifiable, (res.params, res.stderr)
+    else:
+        assert why_whole is None and len(res.starts) == 1
+        rise_whole, rise_sub = 2 * (whole - cost) / s2, 2 * (sub - cost) / s2
+        np.testing.assert_allclose(rise_sub, rise_whole, rtol=0.02, atol=0.5)
