@@ -151,11 +151,12 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     from ._adequacy import pixel_regions
     from ._compile import costs_at
 
-    if not ENABLED or J is None or np.shape(J)[0] != np.size(r) or np.shape(data.target)[0] < MIN_PIXELS:
+    if (not ENABLED or J is None or np.shape(J)[0] != np.size(r)
+            or np.shape(data.target)[0] < MIN_PIXELS):
         return None
     zs = np.stack([zt for _, zt in points])
     dzs = zs - np.asarray(z, dtype=np.float64)
-    labels = pixel_regions(data.geometry)
+    labels = pixel_regions(data.geometry).copy()  # the kept labels are read-only
     labels[(labels == 0) & standing_out(J, dzs)] = 3
     picks = subset_rows(labels, stride)
     if picks is None:
