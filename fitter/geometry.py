@@ -92,7 +92,8 @@ class Geometry(NamedTuple):
         samples' blocks are shared, not copied)."""
         per_light = lambda a: np.asarray(a)[:, rows]  # noqa: E731
         pick = lambda a: np.asarray(a)[rows]  # noqa: E731
-        inv = np.full(np.asarray(self.hit).shape[0], -1)
+        # One entry past the last row: a subset's samples of dropped pixels point there.
+        inv = np.full(np.asarray(self.hit).shape[0] + 1, -1)
         inv[rows] = np.arange(len(rows))
         # The env samples keep their blocks (c is not copied, 0.5 GB at 128^2): a sample
         # of a dropped pixel points past the last row, where the renderer's scatter drops it.
