@@ -77,7 +77,7 @@ def test_subset_verdict_equals_every_pixels(monkeypatch, eta):
     points = _identify.profile_points(spec, z, R, s2)
     zs = np.stack([zt for _, zt in points])
     whole = _compile.costs_at(spec, zs, data)
-    labels = pixel_regions(data.geometry)
+    labels = pixel_regions(data.geometry).copy()  # the kept labels are read-only
     labels[(labels == 0) & _profile.standing_out(J, zs - z)] = 3
     picks = _profile.subset_rows(labels)
     assert picks is not None and len(picks[0]) < 0.5 * np.shape(data.target)[0]
