@@ -213,27 +213,6 @@ SUN_CONE = 0.35
 SUN_EDGE = 0.05
 
 
-def _pair_cosines(n, v, dirs):
-    """``bsdf.base.cosines`` (L, Q) of normals n and views v (Q, 3) with light
-    directions ``dirs`` (L, 3): the same formulas and summation order, per
-    component on (L, Q) arrays (the generic (L, Q, 3) form with np.cross took
-    6 s of a first env fit's 2k-sample discretisation check)."""
-    n0, n1, n2 = n.T
-    v0, v1, v2 = v.T
-    d0, d1, d2 = (c[:, None] for c in dirs.T)
-    h0, h1, h2 = d0 + v0, d1 + v1, d2 + v2
-    ci = n0 * d0 + n1 * d1 + n2 * d2
-    co = np.broadcast_to(n0 * v0 + n1 * v1 + n2 * v2, ci.shape)
-    hh = h0 * h0 + h1 * h1 + h2 * h2
-    nh = n0 * h0 + n1 * h1 + n2 * h2
-    up = (nh > 0) & (hh > 0)
-    inv = np.where(up, 1.0 / np.sqrt(np.where(up, hh, 1.0)), 0.0)
-    c0, c1, c2 = n1 * h2 - n2 * h1, n2 * h0 - n0 * h2, n0 * h1 - n1 * h0
-    tan2 = np.where(up, (c0 * c0 + c1 * c1 + c2 * c2) / np.where(up, nh * nh, 1.0), 0.0)
-    cio = d0 * v0 + d1 * v1 + d2 * v2
-    return Cosines(ci, co, cio, nh * inv, (v0 * h0 + v1 * h1 + v2 * h2) * inv, tan2)
-
-
 #: ``_sun_group`` works on this many (light, sample) pairs at a time: fresh temporaries
 #: of the whole (L, Q) arrays cost page faults here (32 cells x 100 k samples: 3 s
 #: whole, 0.2 s in pieces that stay in cache; the same numbers).
@@ -249,7 +228,9 @@ def _sun_group(n, v, w, rows, dirs, irr):
     stand_in = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
     step = max(1, SUN_CHUNK // max(L, 1))
     for s in range(0, Q, step):
-        part = _pair_cosines(n[s:s + step], v[s:s + step], dirs)
+        # cosines' NumPy path broadcast on (L, q): the generic (L, Q, 3) form with
+        # np.cross took 6 s of a first env fit's 2k-sample discretisation check.
+        part = cosines(n[None, s:s + step], dirs[:, None], v[None, s:s + step])
         lit = (part.cos_i > 0) & (part.cos_o > 0)
         for out, a, b in zip(cos, part, stand_in):
             out[:, s:s + step] = np.where(lit, a, b)

@@ -206,6 +206,15 @@ def profile_points(spec: Spec, z, J, s2: float):
     return out
 
 
+def _chi2_1dof_level() -> float:
+    """The ``AMBIGUOUS_LEVEL`` quantile of chi^2 with 1 dof, z^2 of the normal's
+    (``scipy.special.chdtri(1, 1 - level)`` to 1e-15 relative, without its
+    0.1 s import on every fit)."""
+    from statistics import NormalDist
+
+    return NormalDist().inv_cdf(0.5 + 0.5 * AMBIGUOUS_LEVEL) ** 2
+
+
 def profile_verdict(s2: float, cost: float, profile) -> tuple[str | None, list]:
     """(why the profile calls for several starts or None, the points to start from).
 
@@ -214,10 +223,7 @@ def profile_verdict(s2: float, cost: float, profile) -> tuple[str | None, list]:
     cost is another basin; one whose rise is below ``PROFILE_FLAT`` of that
     while t^2 exceeds the 95 % chi^2 quantile is a flat valley.
     """
-    from statistics import NormalDist  # scipy.special: 0.1 s to import, on every fit
-
-    # chi^2 quantile with 1 dof, z^2 (chdtri(1, 1 - level) to 1e-15 relative)
-    level = NormalDist().inv_cdf(0.5 + 0.5 * AMBIGUOUS_LEVEL) ** 2
+    level = _chi2_1dof_level()
     why, starts = None, []
     for t, zt, ct in profile:
         if not np.isfinite(ct):
@@ -246,8 +252,6 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma, subset: bool = True):
     """
     import time
 
-    from scipy.special import chdtri
-
     from ._compile import costs_at
     from ._covariance import residual_variance
     from ._profile import subset_costs
@@ -261,7 +265,7 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma, subset: bool = True):
     if points and subset:
         J_full = _remembered_jacobian(spec, z, data, r)
         costs = subset_costs(spec, data, z, J_full, r, s2, cost, points,
-                             chdtri(1, 1.0 - AMBIGUOUS_LEVEL), PROFILE_FLAT)
+                             _chi2_1dof_level(), PROFILE_FLAT)
     if costs is None:
         costs = costs_at(spec, np.stack([zt for _, zt in points]), data) if points else []
     evaluated = [(t, zt, float(c)) for (t, zt), c in zip(points, costs)]
