@@ -208,8 +208,8 @@ def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
     host = cosines(np.broadcast_to(n, dn.shape), dn, np.broadcast_to(v, dn.shape))
     for also, want in zip(host, ref):
         np.testing.assert_allclose(also, want, rtol=1e-13, atol=1e-15)
-    assert raw.cos_h[0, 4] == 0 and raw.tan2_h[0, 4] == 0  # h = 0
-    assert raw.tan2_h[1, 9] < 1e-20 and raw.cos_h[1, 9] > 1 - 1e-12  # h along n
+    assert host.cos_h[0, 4] == 0 and host.tan2_h[0, 4] == 0  # h = 0
+    assert host.tan2_h[1, 9] < 1e-20 and host.cos_h[1, 9] > 1 - 1e-12  # h along n
 
 
 def _env_problem(sun_probe):
