@@ -17,22 +17,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def preload() -> None:
-    """Start importing colour-science (~0.8 s) on a thread, for a ``compare`` to
-    come: beside a Mitsuba render, which runs outside the GIL, it costs no wall
-    time. An import that fails here fails again, and is reported, in ``compare``."""
-    import importlib
-    import threading
-
-    def work():
-        try:
-            importlib.import_module("colour")
-        except Exception:  # noqa: BLE001 (raised again where it is used)
-            pass
-
-    threading.Thread(target=work, name="fitter-colour-import", daemon=True).start()
-
-
 def _lab(linear_rgb: np.ndarray) -> np.ndarray:
     import colour
 

@@ -243,7 +243,6 @@ def validate(job: Job, params: Mapping[str, Any], target: np.ndarray,
     """Mitsuba re-render of ``params`` and its comparison with ``target``."""
     from . import metrics, mitsuba
 
-    metrics.preload()
     full = job.material.full_params(params)
     seed = validation_seed(job)
     img = np.asarray(mitsuba.render(job.scene, job.material, full, spp=spp, seed=seed,
