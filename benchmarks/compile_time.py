@@ -118,15 +118,8 @@ def main(argv=None) -> int:
         print(json.dumps(worker(args.worker)))
         return 0
     trees = _trees.trees(args.before, "fitter-compile-")
-    records: dict = {}
-    for _ in range(args.repeat):
-        for case in args.cases:
-            for name, tree in trees:
-                r = run(tree, case)
-                records.setdefault((name, case), []).append(r)
-                brief = {k: v for k, v in r.items() if k not in ("params", "stderr")}
-                print(f"# {name:>20} {case:>18}: {json.dumps(brief)}", file=sys.stderr,
-                      flush=True)
+    records = _trees.interleaved(trees, args.cases, args.repeat,
+                                 lambda tree, case, _: run(tree, case))
     load = os.getloadavg()
     print(f"First-run compile, {args.repeat} fresh processes per (tree, case), interleaved; "
           f"least times; {os.cpu_count()} CPUs, load average {load[0]:.1f}\n")
@@ -135,9 +128,8 @@ def main(argv=None) -> int:
     best = {}
     for case in args.cases:
         for name, _ in trees:
-            rs = [r for r in records[(name, case)] if "failed" not in r]
+            rs = _trees.succeeded(records, name, case)
             if not rs:
-                print(f"| {case} | {name} | failed: {records[(name, case)][0]} |")
                 continue
             best[(name, case)] = {k: min(r[k] for r in rs) for k in
                                   ("compile", "xla", "first", "compiled")}

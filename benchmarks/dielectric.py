@@ -118,13 +118,9 @@ def main(argv=None) -> int:
         return 0
 
     trees = _trees.trees(args.before, "fitter-dielectric-")
-    records: dict = {}
-    for rep in range(args.repeat):
-        for case in args.cases:
-            for name, tree in trees:
-                r = run(tree, case, args.fits, args.mitsuba and rep == 0)
-                records.setdefault((name, case), []).append(r)
-                print(f"# {name:>20} {case:>24}: {json.dumps(r)}", file=sys.stderr, flush=True)
+    records = _trees.interleaved(
+        trees, args.cases, args.repeat,
+        lambda tree, case, rnd: run(tree, case, args.fits, args.mitsuba and rnd == 0))
 
     load = os.getloadavg()
     print(f"Dielectric fits at 128^2, 4x4 samples; {args.repeat} fresh processes per (tree, case), "
@@ -135,9 +131,8 @@ def main(argv=None) -> int:
     best = {}
     for case in args.cases:
         for name, _ in trees:
-            rs = [r for r in records[(name, case)] if "failed" not in r]
+            rs = _trees.succeeded(records, name, case)
             if not rs:
-                print(f"| {case} | {name} | failed: {records[(name, case)][0]} |")
                 continue
             first = min(r["first"] for r in rs)
             comp = min(r["compiled"] for r in rs)
