@@ -149,8 +149,11 @@ PREFETCH_SAMPLES = 2**19
 _AHEAD: dict = {}
 
 
-def _ahead_key(scene, flat) -> tuple:
-    return scene, np.asarray(flat, np.int64).tobytes()
+def _geometry_key(scene, base_dir, env_type, sun_cells, flat) -> tuple:
+    """What a finer geometry depends on (``_GEOMETRIES``, ``_AHEAD``): the scene,
+    the folder its files resolve against, the environment's type, the sun's
+    cells (False: no sun) and the pixels."""
+    return scene, base_dir, env_type, sun_cells, np.asarray(flat, np.int64).tobytes()
 
 
 def prefetch(problem) -> None:
@@ -172,7 +175,8 @@ def prefetch(problem) -> None:
     if flat.size * fine.supersampling**2 > PREFETCH_SAMPLES:
         return
     base = getattr(problem, "base_dir", None)
-    if (fine, base, r.env_type, False, flat.tobytes()) in _GEOMETRIES:  # a refit: kept
+    key = _geometry_key(fine, base, r.env_type, False, flat)
+    if key in _GEOMETRIES:  # a refit: kept
         return
     env64 = load_environment(scene.environment, base)
     box: list = [None]
@@ -185,7 +189,7 @@ def prefetch(problem) -> None:
 
     thread = threading.Thread(target=make, name="fitter-finer-geometry", daemon=True)
     _AHEAD.clear()
-    _AHEAD[_ahead_key(fine, flat)] = (thread, box)
+    _AHEAD[key] = (thread, box)
     thread.start()
 
 
@@ -201,11 +205,11 @@ _KEEP_BYTES = 2**29
 
 def _geometry(scene, env64, lighting, flat, env_type, key):
     """(geometry of the pixels ``flat`` found, on the device; found (P,) bool;
-    coverage (P,)): kept under ``key`` (``_GEOMETRIES``) unless it is None,
-    else the one ``prefetch`` made, else made here."""
-    if key is not None and key in _GEOMETRIES:
+    coverage (P,)): the one kept under ``key`` (``_geometry_key``), else the one
+    ``prefetch`` made, else made here; then kept."""
+    if key in _GEOMETRIES:
         return _GEOMETRIES[key]
-    ahead = _AHEAD.pop(_ahead_key(scene, flat), None) if lighting is None else None
+    ahead = _AHEAD.pop(key, None)
     if ahead is not None:
         ahead[0].join()
     geo = ahead[1][0] if ahead is not None and ahead[1][0] is not None else \
@@ -220,21 +224,18 @@ def _geometry(scene, env64, lighting, flat, env_type, key):
     coverage[found] = np.asarray(sub.hit, dtype=np.float64) @ np.asarray(sub.sample_weight)
     sub = jax.tree_util.tree_map(_to_device, sub._replace(pixel_index=None,
                                                           background_image=None))
-    out = sub, found, coverage
-    if key is not None:
-        _GEOMETRIES[key] = out
-        size = lambda g: sum(a.nbytes for a in jax.tree_util.tree_leaves(g[0]))  # noqa: E731
-        while _GEOMETRIES and (len(_GEOMETRIES) > _KEEP_GEOMETRIES or
-                               sum(size(g) for g in _GEOMETRIES.values()) > _KEEP_BYTES):
-            _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
+    out = _GEOMETRIES[key] = sub, found, coverage
+    size = lambda g: sum(a.nbytes for a in jax.tree_util.tree_leaves(g[0]))  # noqa: E731
+    while _GEOMETRIES and (len(_GEOMETRIES) > _KEEP_GEOMETRIES or
+                           sum(size(g) for g in _GEOMETRIES.values()) > _KEEP_BYTES):
+        _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
     return out
 
 
-def _values(scene, material, env64, lighting, flat, params, env_type, key=None):
+def _values(scene, material, env64, lighting, flat, params, env_type, key):
     """(values (P, 3), coverage (P,)) of the pixels ``flat`` (flat indices) of
     ``scene`` lit by its lights and ``lighting`` (``geometry.build_geometry``);
-    ``key``: what identifies that geometry (scene, environment, sun cells,
-    pixels) to keep it for a refit (``_geometry``), or None."""
+    ``key``: that geometry's ``_geometry_key``."""
     sub, found, coverage = _geometry(scene, env64, lighting, flat, env_type, key)
     sphere = (np.asarray(scene.sphere.center, np.float64),
               np.asarray(scene.sphere.radius, np.float64))
@@ -269,7 +270,7 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
     sun = _sun_only(scene, env64, (envlight.SUN_CELL, envlight.SUN_SUB)) if lit else None
     fine = scene.replace(supersampling=finer_supersampling(scene))
     base = getattr(problem, "base_dir", None)
-    key = lambda s, cells: (s, base, env_type, lit and cells, flat.tobytes())  # noqa: E731
+    key = lambda s, cells: _geometry_key(s, base, env_type, lit and cells, flat)  # noqa: E731
     vals, coverage = _values(fine, finer_material(material), env64, sun, flat, params, env_type,
                              key(fine, (envlight.SUN_CELL, envlight.SUN_SUB)))
     if sun is not None and sun.sun_dir.shape[0]:
