@@ -164,3 +164,16 @@ def test_fit_jacobian_finite_near_eta_one(eta, att):
     jac = jax.jacfwd(lambda q: rend.active(q))(p)
     for key, j in jac.items():
         assert np.all(np.isfinite(np.asarray(j))), key
+
+
+def test_fewer_bounces_keep_a_free_exposure():
+    # The cheaper material must still scale by the exposure: without it the
+    # "exposure" parameter stays free with a zero Jacobian column.
+    truth = {"dielectric.eta": 1.5, "dielectric.attenuation": [0.3, 0.2, 0.1]}
+    target = np.asarray(fitter.render(truth, SCENE))
+    problem = Problem.make(target[None], SCENE, "dielectric", init={**truth, "exposure": 1.0},
+                           noise_sigma=2e-3)
+    assert problem.material.exposure
+    cheaper = cheapened(problem).material
+    assert cheaper.options_of("dielectric")["bounces"] < 8
+    assert cheaper.exposure

@@ -112,4 +112,5 @@ def cheapened(problem):
         options.update({f"{lobe.name}.{k}": v for k, v in found.items()})
     if options == dict(material.options):
         return problem
-    return dataclasses.replace(problem, material=Material.make(material.lobes, options))
+    return dataclasses.replace(problem, material=Material.make(material.lobes, options,
+                                                               exposure=material.exposure))
