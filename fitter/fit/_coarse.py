@@ -46,7 +46,7 @@ def eligible(scene, *, mask, exclude, weights, saturation, loss, dtype, n_starts
             and scene.width * scene.height >= MIN_PIXELS)
 
 
-def solve(problem: Problem, target, z0s, data, solve_starts, say, base_dir=None):
+def solve(problem: Problem, target, z0s, data, solve_starts, say):
     """The first solve of ``fitter.fit`` from one start, coarse to fine.
 
     ``target``: the (H, W, 3) image; ``solve_starts``: the drivers' solver,
@@ -62,13 +62,13 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say, base_dir=None)
     coarse_scene = scene.replace(width=w, height=h, supersampling=scene.supersampling // 2)
     try:
         coarse = Problem.make(small[None], coarse_scene, problem.material,
-                              dtype=problem.dtype, base_dir=base_dir)
+                              dtype=problem.dtype, base_dir=problem.base_dir)
     except Exception:  # noqa: BLE001 (e.g. no interior pixel at half size: solve directly)
         return None
     coarse = dataclasses.replace(coarse, init_full=problem.init_full, blocks=problem.blocks,
                                  loss=problem.loss, loss_scale=problem.loss_scale,
                                  static=problem.static)
-    zs, codes, steps, costs, best, _, t_compile = solve_starts(
+    zs, codes, steps, _, best, _, t_compile = solve_starts(
         coarse, z0s, coarse.data(0), say, f"coarse {w}x{h}: ")
     if outcome_table().get(int(codes[best]), ("",))[0] != "converged":
         return None

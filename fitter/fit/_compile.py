@@ -15,15 +15,15 @@ from ._cache import compile_cached
 from ._problem import Spec, residuals
 from ._solvers import make_solver, result_code
 
+#: XLA options of every fit executable (``compilation_cache.FAST_COMPILE``:
+#: half the compile, same speed; the solve's outputs change by <= 4e-10
+#: relative, the solver stopping elsewhere within its tolerance).
+FAST_XLA_OPTIONS = FAST_COMPILE
 #: XLA options for the solver loops. Loop-invariant code motion hoists the
 #: parameter-independent parts of every sample (masks, G, 1/cos) out of the
 #: solver's while loop into separate, unfused passes over (lights, pixels,
 #: samples) arrays: measured +30 ms per LM fit at 256^2 with 4x4 samples
 #: (fixed cost 45 -> 15 ms), for no gain per step.
-#: XLA options of every fit executable (``compilation_cache.FAST_COMPILE``:
-#: half the compile, same speed; the solve's outputs change by <= 4e-10
-#: relative, the solver stopping elsewhere within its tolerance).
-FAST_XLA_OPTIONS = FAST_COMPILE
 SOLVE_XLA_OPTIONS = {**FAST_XLA_OPTIONS,
                      "xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
 #: XLA options for code run once on few pixels (the start's dead-column check):
@@ -90,7 +90,7 @@ def gauss_newton_step(spec: Spec, z, data):
 
     dz solves the normal equations J^T J dz = -J^T r (Cholesky; p x p, as
     the solvers' ``_solvers._normal``)."""
-    J, r = jax.jacfwd(lambda z: (residuals(z, data, spec),) * 2, has_aux=True)(z)
+    J, r = jacobian_full(spec, z, data)
     dz = -jax.scipy.linalg.solve(J.T @ J, J.T @ r, assume_a="pos")
     return jnp.linalg.qr(J, mode="r"), r, J, dz, 0.5 * jnp.sum(r * r)
 
@@ -210,12 +210,17 @@ def jac_res(spec: Spec, z, data, once: bool = False):
     return r_factor(R), np.asarray(r, dtype=np.float64), tc
 
 
+def residuals_at_points(spec: Spec, zs, data) -> np.ndarray:
+    """Residuals (k, N) at each point of ``zs`` (k, n), float64 on the host."""
+    zs = jnp.asarray(zs, dtype=data.target.dtype)
+    exe, _ = compiled("residuals", spec, (zs, data))
+    return np.asarray(exe(zs, data), dtype=np.float64)
+
+
 def costs_at(spec: Spec, zs, data) -> np.ndarray:
     """Half the sum of squared residuals (k,) at each point of ``zs`` (k, n),
     summed in float64 on the host whatever the fit's dtype."""
-    zs = jnp.asarray(zs, dtype=data.target.dtype)
-    exe, _ = compiled("residuals", spec, (zs, data))
-    r = np.asarray(exe(zs, data), dtype=np.float64)
+    r = residuals_at_points(spec, zs, data)
     return 0.5 * np.sum(r * r, axis=1)
 
 

@@ -174,7 +174,7 @@ def prefetch(problem) -> None:
     fine = scene.replace(supersampling=finer_supersampling(scene))
     if flat.size * fine.supersampling**2 > PREFETCH_SAMPLES:
         return
-    base = getattr(problem, "base_dir", None)
+    base = problem.base_dir
     key = _geometry_key(fine, base, r.env_type, False, flat)
     if key in _GEOMETRIES:  # a refit: kept
         return
@@ -262,14 +262,14 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
     """
     r = problem.renderer
     scene, material, env_type = r.scene, r.material, r.env_type
-    env64 = load_environment(scene.environment, getattr(problem, "base_dir", None))
+    base = problem.base_dir
+    env64 = load_environment(scene.environment, base)
     flat = np.asarray(r.pixel_index)[problem.rows]
     if rows is not None:
         flat = flat[rows]
     lit = envlight.lit_by_environment(scene, material)
     sun = _sun_only(scene, env64, (envlight.SUN_CELL, envlight.SUN_SUB)) if lit else None
     fine = scene.replace(supersampling=finer_supersampling(scene))
-    base = getattr(problem, "base_dir", None)
     key = lambda s, cells: _geometry_key(s, base, env_type, lit and cells, flat)  # noqa: E731
     vals, coverage = _values(fine, finer_material(material), env64, sun, flat, params, env_type,
                              key(fine, (envlight.SUN_CELL, envlight.SUN_SUB)))

@@ -126,7 +126,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     first = None
     if coarse:
         first = _coarse.solve(problem, target.reshape(target.shape[-3:]), z0s, data,
-                              solve_starts, say, base_dir)
+                              solve_starts, say)
     if first is None:
         first = solve_starts(problem, z0s, data, say)
     zs, codes, nsteps, costs, best, (R, r), tc = first
@@ -275,9 +275,9 @@ def _hold_dead_columns(problem: Problem, coarse: bool = False) -> tuple[Problem,
     z0 = problem.z_init()
     t_compile = 0.0
     if coarse:
-        step, t_compile = compiled("gauss_newton", problem.spec,
-                                   (problem.cast(z0), problem.data(0)))
-        J0 = r_factor(step(problem.cast(z0), problem.data(0))[0])
+        args = (problem.cast(z0), problem.data(0))
+        step, t_compile = compiled("gauss_newton", problem.spec, args)
+        J0 = r_factor(step(*args)[0])
         dead = blocks_of(problem.spec, dead_columns(problem.spec, z0, J0))
         return problem.held(dead, [_dead_reason(problem, k) for k in dead]), t_compile
     # A column alive on a strided subset of the pixels is alive (the common

@@ -8,9 +8,11 @@ multi-start check, another start as good but elsewhere.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
-from ._covariance import covariance, fit_coordinates
+from ._covariance import covariance, fit_coordinates, residual_variance
 from ._problem import Spec, blocks_of, format_value, frame
 
 #: A column of the Jacobian this much smaller than the largest one means the
@@ -239,21 +241,18 @@ def profile_verdict(s2: float, cost: float, profile) -> tuple[str | None, list]:
     return why, starts
 
 
-def weak_profile(spec: Spec, data, z, J, r, noise_sigma, subset: bool = True):
+def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
     """The cost profile along the weakest direction of a one-start fit:
     (why several starts are needed or None, start points (k, n), seconds).
 
     ``J``: the Jacobian's R factor at ``z``, ``r`` the residuals there. The
     points cost one residual evaluation each, in one compiled call
-    (``_compile.costs_at``; no Jacobian). ``subset``: where the solver's whole
-    Jacobian at ``z`` is at hand (``_compile.jac_full`` of a remembered
-    solution), on the pixel subset of ``_profile.subset_costs`` (exact where
-    the model is linear in z, guarded by its standard error elsewhere).
+    (``_compile.costs_at``; no Jacobian); where the solver's whole Jacobian at
+    ``z`` is at hand (``_compile.jac_full`` of a remembered solution), on the
+    pixel subset of ``_profile.subset_costs`` (exact where the model is linear
+    in z, guarded by its standard error elsewhere; ``_profile.ENABLED``).
     """
-    import time
-
     from ._compile import costs_at
-    from ._covariance import residual_variance
     from ._profile import subset_costs
 
     t0 = time.perf_counter()
@@ -262,7 +261,7 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma, subset: bool = True):
     cost = 0.5 * float(r @ r)
     points = profile_points(spec, z, J, s2)
     costs = None
-    if points and subset:
+    if points:
         J_full = _remembered_jacobian(spec, z, data, r)
         costs = subset_costs(spec, data, z, J_full, r, s2, cost, points,
                              _chi2_1dof_level(), PROFILE_FLAT)

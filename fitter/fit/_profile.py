@@ -102,15 +102,6 @@ def subset_data(data, rows):
                          weights=jnp.asarray(data.weights)[rows])
 
 
-def residuals_at_points(spec, zs, data) -> np.ndarray:
-    """Residuals (k, N) at each point of ``zs`` (k, n), float64 on the host."""
-    from ._compile import compiled
-
-    zs = jnp.asarray(zs, dtype=data.target.dtype)
-    exe, _ = compiled("residuals", spec, (zs, data))
-    return np.asarray(exe(zs, data), dtype=np.float64)
-
-
 def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float):
     """(estimated chi^2 rises (k,), their standard errors (k,)) at z + dz.
 
@@ -149,7 +140,7 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     estimate is too close to a threshold; None when the subset does not apply
     (too few pixels, or no whole Jacobian ``J``)."""
     from ._adequacy import pixel_regions
-    from ._compile import costs_at
+    from ._compile import costs_at, residuals_at_points
 
     if (not ENABLED or J is None or np.shape(J)[0] != np.size(r)
             or np.shape(data.target)[0] < MIN_PIXELS):
