@@ -61,7 +61,8 @@ SUN_MAX_TEXELS = 64
 #: half-texel cells: 0.6 % (quarter-texel: 0.3 %, at 1.5x the fit time and memory).
 SUN_CELL = 2
 SUN_SUB = 8
-_LUM = np.array([0.2126, 0.7152, 0.0722])
+#: Relative luminance of linear RGB (ITU-R BT.709 / sRGB primaries): which texel is the sun.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 class EnvLights(NamedTuple):
@@ -76,7 +77,7 @@ class EnvLights(NamedTuple):
     sun_dir: np.ndarray
     sun_irradiance: np.ndarray
     sky: Pyramid
-    detail: Detail = None
+    detail: Detail = Detail()
 
 
 # ----------------------------------------------------------------- lat-long maps (NumPy)
@@ -164,7 +165,7 @@ def split_sun(img: np.ndarray, cell: int = SUN_CELL, sub: int = SUN_SUB):
     ``cell``: sun cells of 1 / cell texel; ``sub``: sub-samples per texel (a multiple of cell)."""
     img = np.asarray(img, dtype=np.float64)
     h, w = img.shape[:2]
-    lum = img @ _LUM
+    lum = img @ LUMINANCE
     thresh = SUN_RATIO * max(float(np.median(lum)), 1e-12)
     order = np.argsort(lum, axis=None)[::-1][:SUN_MAX_TEXELS]
     order = order[lum.reshape(-1)[order] > thresh]
@@ -196,24 +197,23 @@ def split_sun(img: np.ndarray, cell: int = SUN_CELL, sub: int = SUN_SUB):
     d_omega = np.sin(np.pi * v) * (np.pi / ((h - 1) * k)) * (2 * np.pi / (w * k))
     dirs = uv_to_dir(u, v)
     e = rad * d_omega[:, None]
-    wl = e @ _LUM
+    wl = e @ LUMINANCE
     cell_id = (fr // (k // cell)) * (w * cell) + fc // (k // cell)
     ids, inv = np.unique(cell_id, return_inverse=True)
     irr = np.zeros((ids.size, 3))
     np.add.at(irr, inv, e)
     cen = np.zeros((ids.size, 3))
     np.add.at(cen, inv, dirs * wl[:, None])
-    keep = irr @ _LUM > 1e-6 * max(float((irr @ _LUM).sum()), 1e-300)
+    keep = irr @ LUMINANCE > 1e-6 * max(float((irr @ LUMINANCE).sum()), 1e-300)
     cen = cen[keep]
     return cen / np.linalg.norm(cen, axis=-1, keepdims=True), irr[keep], sky
 
 
 def env_lights(env_type: str, image: np.ndarray, constant: np.ndarray,
-               detail: Detail | None = None, sun: tuple = (SUN_CELL, SUN_SUB)) -> EnvLights | None:
+               detail: Detail = Detail(), sun: tuple = (SUN_CELL, SUN_SUB)) -> EnvLights | None:
     """The split environment, or None for a black one; ``detail``: the sky term's
-    discretisation (default ``Detail()``), which ``geometry.build_geometry`` uses;
+    discretisation, which ``geometry.build_geometry`` uses;
     ``sun``: (cell, sub) of ``split_sun`` (the sun's discretisation)."""
-    detail = detail or Detail()
     if env_type == "envmap":
         sun_dir, sun_irr, sky = split_sun(image, *sun)
         return EnvLights(sun_dir, sun_irr, Pyramid(sky), detail)

@@ -20,7 +20,8 @@ from .bsdf.base import Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
 from .compilation_cache import FAST_COMPILE
 from .environment import EnvData, lookup
-from .scene import DirectionalLight, PointLight, Scene, check_scene
+from .envlight import LUMINANCE
+from .scene import DirectionalLight, PointLight, Scene
 
 _LOOKUP = jax.jit(lookup, static_argnums=0, compiler_options=FAST_COMPILE)
 
@@ -127,12 +128,8 @@ def intersect_sphere(o, d, center, radius):
     return np.where(hit & (t > 0), t, np.inf)
 
 
-def light_terms(lights, position, extra_dirs=(), extra_irradiance=()):
-    """Unit directions to each light (L, ..., 3), fall-off (L, ...) and colour (L, 3).
-
-    ``extra_dirs`` / ``extra_irradiance``: further directional lights, given
-    by the unit direction *towards* them (the environment's sun cells).
-    """
+def light_terms(lights, position):
+    """Unit directions to each light (L, ..., 3), fall-off (L, ...) and colour (L, 3)."""
     dirs, falloff, color = [], [], []
     for light in lights:
         if isinstance(light, PointLight):
@@ -151,10 +148,6 @@ def light_terms(lights, position, extra_dirs=(), extra_irradiance=()):
             color.append(light.irradiance)
         else:
             raise SceneError(f"unknown light {light!r}")
-    for v, irr in zip(extra_dirs, extra_irradiance):
-        dirs.append(np.broadcast_to(np.asarray(v, dtype=np.float64), position.shape))
-        falloff.append(np.ones(position.shape[:-1]))
-        color.append(irr)
     if not dirs:
         return (np.zeros((0,) + position.shape), np.zeros((0,) + position.shape[:-1]),
                 np.zeros((0, 3)))
@@ -213,6 +206,11 @@ SUN_CONE = 0.35
 SUN_EDGE = 0.05
 
 
+#: Cosines where a sample is unlit (its weight is 0): finite stand-ins, so no lobe
+#: formula sees a zero or negative cosine there (the double-where rule).
+_STAND_IN = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
+
+
 #: ``_sun_group`` works on this many (light, sample) pairs at a time: fresh temporaries
 #: of the whole (L, Q) arrays cost page faults here (32 cells x 100 k samples: 3 s
 #: whole, 0.2 s in pieces that stay in cache; the same numbers).
@@ -225,14 +223,13 @@ def _sun_group(n, v, w, rows, dirs, irr):
     L, Q = dirs.shape[0], n.shape[0]
     cos = Cosines(*(np.empty((L, Q)) for _ in Cosines._fields))
     weight = np.empty((L, Q))
-    stand_in = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
     step = max(1, SUN_CHUNK // max(L, 1))
     for s in range(0, Q, step):
         # cosines' NumPy path broadcast on (L, q): the generic (L, Q, 3) form with
         # np.cross took 6 s of a first env fit's 2k-sample discretisation check.
         part = cosines(n[None, s:s + step], dirs[:, None], v[None, s:s + step])
         lit = (part.cos_i > 0) & (part.cos_o > 0)
-        for out, a, b in zip(cos, part, stand_in):
+        for out, a, b in zip(cos, part, _STAND_IN):
             out[:, s:s + step] = np.where(lit, a, b)
         weight[:, s:s + step] = np.where(lit, w[s:s + step] * cos.cos_i[:, s:s + step], 0.0)
     return rows, cos, weight, np.asarray(irr, np.float64)
@@ -243,7 +240,7 @@ def sun_samples(lighting, hit, normal, view, weight, e_rows, e_n, e_v, e_w):
     highlight and the sun's horizon, one merged light on the env samples elsewhere."""
     if not lighting.sun_dir.shape[0]:
         return ()
-    lum = lighting.sun_irradiance @ np.array([0.2126, 0.7152, 0.0722])
+    lum = lighting.sun_irradiance @ LUMINANCE
     lc = (lighting.sun_dir * lum[:, None]).sum(0)
     lc /= np.linalg.norm(lc)
     h = lc + view
@@ -269,7 +266,6 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     indices (row * W + col) of the only pixels to make active (default all
     that the sphere covers).
     """
-    check_scene(scene)
     sph = scene.sphere
     sel = None if pixels is None else np.unique(np.asarray(pixels, dtype=np.int64))
     o, d = camera_rays(scene, sel)  # (H, W, K, 3), or (P, 1, K, 3) of the pixels asked for
@@ -305,18 +301,16 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     light_dir, falloff, color = light_terms(scene.lights, pos)
     cos = Cosines(*(np.asarray(a) for a in cosines(normal, light_dir, -d_a)))
     lit = hit & (cos.cos_i > 0) & (cos.cos_o > 0)
-    stand_in = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
-    cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, stand_in)))
+    cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, _STAND_IN)))
     light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
     if lighting is not None:
-        from .envlight import Detail, node_geometry, sky_sum, sky_table
+        from .envlight import node_geometry, sky_sum, sky_table
 
-        t_h = t_a
-        rows, e_n, e_v, e_w = env_samples(scene, hit, t_h, o_a, d_a, weight, pixel_index)
+        rows, e_n, e_v, e_w = env_samples(scene, hit, t_a, o_a, d_a, weight, pixel_index)
         ok = np.sum(e_n * e_v, -1) > 0
         sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
         rows, e_n, e_v, e_w = rows[ok], e_n[ok], e_v[ok], e_w[ok]
-        det = lighting.detail or Detail()
+        det = lighting.detail
         if lighting.sky is not None:
             order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
             rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)

@@ -25,6 +25,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ._math import to_device
+
 #: Ring edges (radians from the mirror direction) of the sky stencil.
 #: Below 0.3 rad twice as many rings as the first version (midpoints added): a midpoint
 #: rule in angle over a Gaussian-like lobe is -0.3 % (Phong e = 300) to +0.4 % (Beckmann
@@ -368,8 +370,8 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     wo = np.where(pad[:, None], [0.0, 0.0, 1.0], view[pick])
     wt = np.where(pad, 0.0, weight[pick])
     frac = np.where(pad, 0.0, fr[pick])
-    flt = lambda a: jnp.asarray(a, dtype) if np.asarray(a).dtype.kind == "f" \
-        else jnp.asarray(a)  # noqa: E731
+    # to_device: no copy kernel compiled per shape, as jnp.asarray of a host array does
+    flt = lambda a: to_device(a, dtype if np.asarray(a).dtype.kind == "f" else None)  # noqa: E731
     consts = [flt(a) for a in (q_tab, cen_tab, flat, lh, lw, loff, lo, fl)]
     # One jitted map over the chunks writing straight into the (nb, B x 3, N) float64
     # table: no host copy of it (a fresh 0.5 GB costs seconds of page faults here).

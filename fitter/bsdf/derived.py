@@ -112,7 +112,6 @@ def settle(material: Material, result) -> None:
     """
     values, notes = derive(material, result)
     result.derived = values
-    marked = []
     for lobe in material.lobe_objects:
         keys = [k for k in values if k.startswith(lobe.name + ".")]
         if not keys:
@@ -141,7 +140,6 @@ def settle(material: Material, result) -> None:
                 loose |= {n.split("[")[0] for n, h in zip(cov[1], heavy) if h}
         for k in free:
             if k in loose:
-                marked.append(k)
                 for part in ("stderr", "stderr_stat", "stderr_sys", "stderr_disc"):
                     getattr(result, part, {}).pop(k, None)
                 result.unidentifiable.append(k)
@@ -168,7 +166,7 @@ def _inputs(lobe, material, result) -> set[str]:
         bumped = dict(p)
         bumped[k] = v * (1 + 1e-3) + 1e-3
         after = lobe.derived(bumped, opts)
-        if any(not np.allclose(after[n], base[n], rtol=0, atol=0) for n in base):
+        if any(not np.array_equal(after[n], base[n]) for n in base):
             out.add(k)
     return out
 
@@ -193,7 +191,6 @@ def _loose(lobe: str, key: str, value, stderr, free, result) -> list[str]:
     return [f"{key} = {_fmt(value)} ± {_fmt(stderr)} is what this image determines; "
             f"{', '.join(loose)} only along the curve of equal {key.split('.')[-1]}, "
             "so read them as one point of that curve"]
-
 
 
 def _fmt(v) -> str:

@@ -74,8 +74,8 @@ def _crossing(eta, att, hit):
     # Inside, the ray meets the surface at the refraction angle, where the
     # reflectance from inside equals F_0 (Fresnel is symmetric under reversal:
     # F(cos_t, 1/eta) = F(cos_i, eta); no total internal reflection on a
-    # sphere). The radiance gains eta^2 going in and 1/eta^2 going out
-    # (``radiance_scale``): a factor 1 on every exit.
+    # sphere). The radiance gains eta^2 going in and 1/eta^2 going out: a
+    # factor 1 on every exit.
     transmit = safe_pow(att, chord[..., None])  # Beer-Lambert over one chord
     first = ((1.0 - f0) ** 2)[..., None] * transmit
     return f0, first, f0[..., None] * transmit, t_out, cos_phi, axis, chord

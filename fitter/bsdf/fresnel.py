@@ -188,13 +188,3 @@ def refract(d, n, eta):
     t = d / jnp.asarray(eta)[..., None] + ((cos_i / eta) - cos_t)[..., None] * n
     mirror = d + 2.0 * cos_i[..., None] * n
     return jnp.where(tir[..., None], mirror, t), tir
-
-
-def radiance_scale(eta):
-    """Radiance change (eta_t / eta_i)^2 of light refracted into a medium.
-
-    ``eta`` = eta_t / eta_i along the direction the light travels. Entering and
-    leaving a sphere multiplies by eta^2 and 1/eta^2, which cancel on a full
-    pass (Teschner, *Materials 3*, "Specular transmission").
-    """
-    return eta * eta
