@@ -86,9 +86,6 @@ class Outcome:
     validation: Validation | None
     truth_error: dict[str, TruthError]  # empty without [material.truth]
     stage_times: dict[str, float]  # seconds per stage, in order
-    #: ``{"lobe.name": {"value", "stderr"}}``, what the image pins better than
-    #: the parameters (a conductor's F0; ``fitter.bsdf.derived``)
-    derived: dict = dataclasses.field(default_factory=dict)
 
     @property
     def residual(self) -> np.ndarray:
@@ -113,8 +110,6 @@ class Outcome:
         d["config"] = self.job.path
         if self.validation is not None:
             d["validation"] = self.validation.to_dict()
-        if self.derived:
-            d["derived"] = self.derived
         return plain(d)
 
 
@@ -147,7 +142,6 @@ def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *
         saturated = np.zeros(target.shape[:2], dtype=bool)
     with timed("fit", f"fitting ({job.fit.solver}, {job.fit.n_starts} start(s))") as note:
         result = fit_job(job, target, saturated, progress=note)
-        derived = result.derived  # the fit engine's (``fitter.bsdf.derived.settle``)
     with timed("render", "rendering the fit"):
         rendered = render_params(job, result.params)
     validation = None
@@ -158,7 +152,7 @@ def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *
     truth = truth_error(result.params, result.stderr, job.truth) if job.truth else {}
     return Outcome(job=job, target_path=target_path or (job.fit.target or ""), target=target,
                    fit=result, rendered=rendered, validation=validation, truth_error=truth,
-                   stage_times=times, derived=derived)
+                   stage_times=times)
 
 
 def preflight(job: Job) -> None:

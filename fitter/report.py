@@ -66,7 +66,7 @@ def new_figure():
     """(figure, axes by panel name): the report's page before anything is drawn on it.
 
     Nothing here depends on the outcome, so ``fitter.report_process`` makes it
-    while the fit still runs (8 axes, ~0.07 s); ``build_report`` fills it.
+    while the fit still runs (7 axes, ~0.07 s); ``build_report`` fills it.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

@@ -101,7 +101,7 @@ def serve() -> None:
     from matplotlib.figure import Figure
 
     from . import report
-    from . import config, pipeline  # noqa: F401 (what unpickling the outcome needs)
+    from . import config, pipeline  # noqa: F401 (imported while waiting: the outcome's classes)
     from .fit import result  # noqa: F401
 
     warm = Figure(figsize=(1, 1), dpi=100)  # font cache, glyphs and the Agg renderer

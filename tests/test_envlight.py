@@ -106,7 +106,7 @@ def test_values_and_gradients_are_finite_for_sharp_lobes_under_a_tiny_sun(sun_pr
 # (every case of fitter.cases), with the measured gaps stated there.
 
 
-def test_lambert_shortcut_equals_the_stencil_sum(sun_probe, monkeypatch):
+def test_lambert_shortcut_equals_the_stencil_sum(sun_probe, monkeypatch, request):
     # Lambert's sky term is 1/pi x the tabulated irradiance (no per-step sum); it must
     # equal the general path (the lobe summed over the stencil cells), which it skips.
     import importlib
@@ -117,6 +117,7 @@ def test_lambert_shortcut_equals_the_stencil_sum(sun_probe, monkeypatch):
     fast = np.asarray(render(params, scene))
     monkeypatch.setattr(render_mod, "_constant_shape", lambda lobe, opts: None)
     jax.clear_caches()  # retrace render_active with the general path
+    request.addfinalizer(jax.clear_caches)  # and with the shortcut again after this test
     slow = np.asarray(render(params, scene))
     assert np.abs(slow).max() > 0
     np.testing.assert_allclose(fast, slow, rtol=1e-12, atol=1e-14)

@@ -16,6 +16,7 @@ from small_case import SMALL, write_case
 import fitter
 from fitter import cli
 from fitter.config import load_config
+from fitter.imageio import read_image
 
 
 def _small_job(tmp_path, n_starts):
@@ -26,7 +27,7 @@ def _small_job(tmp_path, n_starts):
 
 def test_each_start_reports_its_steps_and_cost(tmp_path):
     _, job = _small_job(tmp_path, 2)
-    target = fitter.imageio.read_image(job.fit.target)
+    target = read_image(job.fit.target)
     lines = []
     res = fitter.fit(target, job.scene, job.material, init=job.init, fixed=job.fixed,
                      n_starts=2, progress=lines.append)
@@ -68,7 +69,7 @@ def test_the_cli_spinner_line_shows_the_starts_as_they_finish(tmp_path, monkeypa
 
 def test_a_fit_out_of_steps_says_so_in_the_products_words(tmp_path):
     _, job = _small_job(tmp_path, 1)
-    target = fitter.imageio.read_image(job.fit.target)
+    target = read_image(job.fit.target)
     res = fitter.fit(target, job.scene, job.material, init=job.init, fixed=job.fixed,
                      max_steps=1)
     assert res.status == "max_steps"

@@ -12,7 +12,7 @@ Source: Mitsuba itself, never typed by hand. ``python -m fitter.bsdf.metals
 tables, which the RGB variants reduce to RGB; Mitsuba clamps a negative
 out-of-gamut channel to 0, with a warning) and reads ``eta.value`` and
 ``k.value`` through ``mi.traverse``; it rewrites ``METALS`` below and records
-the version and variant in ``SOURCE``. ``tests/test_conductor.py`` checks the
+the version and variant in ``SOURCE``. ``tests/test_metals.py`` checks the
 table against Mitsuba. Names whose RGB values are not a conductor's (a
 channel of k below the box's 1e-3 for the dielectrics, e.g. CsI, MgO, TiO2;
 AlSb's red eta 0) stay in the table but lie outside the conductor's box, and
