@@ -88,6 +88,11 @@ class Geometry(NamedTuple):
     env_irradiance: np.ndarray
     sun: tuple = ()
 
+    @property
+    def has_sky(self) -> bool:
+        """Whether the environment's sky term lights these pixels (a sky table)."""
+        return bool(self.env_color.shape[0] and self.env_color.shape[1])
+
     def subset(self, rows: np.ndarray) -> "Geometry":
         """The geometry of the active pixels ``rows`` only (NumPy arrays; the env
         samples' blocks are shared, not copied)."""

@@ -247,7 +247,7 @@ def render_active(params, geo: Geometry, env: EnvData, sphere, *, material, env_
         if lobe.kind == "brdf":
             if geo.light_weight.shape[0]:
                 value = value + p[lobe.scale] * _brdf_unit(lobe, p, opts, geo)
-            if geo.env_color.shape[0] and geo.env_color.shape[1]:
+            if geo.has_sky:
                 value = value + p[lobe.scale] * _env_unit(lobe, p, opts, geo)
             for index, cos, weight, color in geo.sun:
                 if index.shape[0]:

@@ -74,8 +74,7 @@ def residuals_at(spec: Spec, zs, data):
     """Residuals (k, N) at each point of ``zs`` (k, n), a few points at a time
     (``lax.map``: ``SKY_BATCH`` with a sky table, else ``MAP_BATCH_ELEMENTS``;
     no Jacobian)."""
-    env = data.geometry.env_color
-    if env.shape[0] and env.shape[1]:
+    if data.geometry.has_sky:
         batch = SKY_BATCH
     else:
         size = sum(np.size(a) for a in jax.tree_util.tree_leaves(data.geometry))

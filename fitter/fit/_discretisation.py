@@ -292,7 +292,7 @@ def coarse_without_sky(data, params, material, env_type, model) -> np.ndarray:
     """The fitted model's values (P, 3) without its sky term: ``model`` itself
     when the environment lights no opaque lobe."""
     geo = data.geometry
-    if not (geo.env_color.shape[0] and geo.env_color.shape[1]):
+    if not geo.has_sky:
         return np.asarray(model, dtype=np.float64)
     empty = jnp.zeros((0, 0, 0), dtype=geo.env_color.dtype)
     return _render(_params(data, params), geo._replace(env_color=empty), data.env,
@@ -305,7 +305,7 @@ def sky_stencil_error(data, params, material, env_type) -> np.ndarray:
     is exact, rho/pi x irradiance); zeros when the environment lights none."""
     geo = data.geometry
     glossy = [lb.name for lb in material.lobe_objects if lb.kind == "brdf" and lb.name != "lambert"]
-    if not (glossy and geo.env_color.shape[0] and geo.env_color.shape[1]):
+    if not (glossy and geo.has_sky):
         return np.zeros(np.asarray(geo.background).shape)
     dark = geo._replace(  # no lights, no sun, no background: the sky term alone
         cosines=type(geo.cosines)(*(a[:0] for a in geo.cosines)),

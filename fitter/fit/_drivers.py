@@ -188,14 +188,14 @@ def solve_starts(problem: Problem, z0s, data, say=_quiet, what: str = ""):
         best_so_far = (f" (best cost so far {min(float(o[3][0]) for o in outs):.4g})"
                        if outs else "")
         say(f"{what}solving from start {i + 1}/{n}{best_so_far}")
-        *out, (R, r, J) = jax.tree_util.tree_map(np.asarray, solve(problem.cast(z0s[i:i + 1]),
-                                                                   data))
-        outs.append((*out, (R, r)))
+        *out, (R, r, J) = solve(problem.cast(z0s[i:i + 1]), data)
+        out = [np.asarray(a) for a in out]
+        outs.append((*out, (np.asarray(R), np.asarray(r))))
         say(f"{what}start {i + 1}/{n} done: {int(out[2][0])} steps, cost "
             f"{float(out[3][0]):.4g}")
         costs = np.concatenate([o[3] for o in outs])
         if int(best_start(costs, np.concatenate([o[0] for o in outs]))) == i:
-            best_J = J  # one whole Jacobian kept, not one per start (N x n each)
+            best_J = np.asarray(J)  # one whole Jacobian to the host, not one per start
     zs, codes, steps, costs = (np.concatenate([o[k] for o in outs]) for k in range(4))
     best = int(best_start(costs, zs))
     remember_jacobian(problem.spec, zs[best], data, best_J, outs[best][5][1])
