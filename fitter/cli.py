@@ -97,13 +97,16 @@ def _signals_as_interrupt():
     and ``kill -INT`` must still stop a fit rather than let it replace ``--out``.
     The signal is also remembered, because Python drops an exception raised
     inside a garbage-collector callback (JAX has one): ``_check_interrupt``
-    raises it again at the next stage boundary.
+    raises it again at the next stage boundary. During an import it is only
+    remembered: an exception thrown into a native module's initialisation
+    (jaxlib's, OpenImageIO's) aborts or crashes the interpreter.
     """
     import signal
 
     def handler(signum, frame):
         _INTERRUPTED.append(signum)
-        raise KeyboardInterrupt
+        if not _importing(frame):
+            raise KeyboardInterrupt
 
     def unraisable(info, default=sys.unraisablehook):
         if not issubclass(info.exc_type, KeyboardInterrupt):  # remembered; raised later
@@ -118,10 +121,20 @@ def _signals_as_interrupt():
         previous = {}
     try:
         yield
+        _check_interrupt()  # one that arrived during the command's last import
     finally:
         for sig, prev in previous.items():
             signal.signal(sig, prev)
         sys.unraisablehook = hook
+
+
+def _importing(frame) -> bool:
+    """Whether ``frame`` runs inside an ``import`` (importlib's frames are on its stack)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
 
 
 def _parser() -> argparse.ArgumentParser:

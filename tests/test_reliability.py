@@ -198,3 +198,20 @@ def test_a_bom_is_read_and_control_characters_are_not_echoed(tmp_path, capsys):
     code, _, err = _run(capsys, "fit", ctl)
     assert code == 2 and "unknown key" in err
     assert "\x1b" not in err and "\\x1b" in err
+
+
+def test_a_signal_during_an_import_is_raised_after_it(tmp_path, monkeypatch):
+    # Thrown into a native module's initialisation (jaxlib's, OpenImageIO's) the
+    # KeyboardInterrupt aborted the interpreter; it must wait for the import to end.
+    import importlib
+
+    from fitter import cli
+
+    (tmp_path / "slow_native_stand_in.py").write_text(
+        "import os, signal\nos.kill(os.getpid(), signal.SIGINT)\nFINISHED = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    imported = []
+    with pytest.raises(KeyboardInterrupt):
+        with cli._signals_as_interrupt():
+            imported.append(importlib.import_module("slow_native_stand_in"))
+    assert imported and imported[0].FINISHED  # the module's body ran to its end
