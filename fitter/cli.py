@@ -40,6 +40,7 @@ from typing import Any, Sequence
 
 from .compilation_cache import enable_compilation_cache
 from .errors import FitterError
+from .interrupt import check_interrupt, signals_as_interrupt
 from .outputs import write_outcome
 
 EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_NOT_CONVERGED = 0, 1, 2, 3
@@ -61,7 +62,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # argparse printed usage and the reason
         return EXIT_OK if exc.code == 0 else EXIT_INPUT
     try:
-        with _signals_as_interrupt():
+        with signals_as_interrupt():
             return args.run(args)
     except KeyboardInterrupt:
         print("fitter: interrupted", file=sys.stderr)
@@ -79,62 +80,6 @@ def _printable(text: str) -> str:
     """``text`` with control characters escaped: a key or path from a config
     must not drive the user's terminal."""
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
-
-
-_INTERRUPTED: list[int] = []  # signals received during this command
-
-
-def _check_interrupt() -> None:
-    if _INTERRUPTED:
-        raise KeyboardInterrupt
-
-
-@contextlib.contextmanager
-def _signals_as_interrupt():
-    """Let SIGINT and SIGTERM unwind as ``KeyboardInterrupt``, so staged outputs are removed.
-
-    SIGINT is set explicitly: a shell starts background jobs with it ignored,
-    and ``kill -INT`` must still stop a fit rather than let it replace ``--out``.
-    The signal is also remembered, because Python drops an exception raised
-    inside a garbage-collector callback (JAX has one): ``_check_interrupt``
-    raises it again at the next stage boundary. During an import it is only
-    remembered: an exception thrown into a native module's initialisation
-    (jaxlib's, OpenImageIO's) aborts or crashes the interpreter.
-    """
-    import signal
-
-    def handler(signum, frame):
-        _INTERRUPTED.append(signum)
-        if not _importing(frame):
-            raise KeyboardInterrupt
-
-    def unraisable(info, default=sys.unraisablehook):
-        if not issubclass(info.exc_type, KeyboardInterrupt):  # remembered; raised later
-            default(info)
-
-    _INTERRUPTED.clear()
-    hook, sys.unraisablehook = sys.unraisablehook, unraisable
-    try:
-        previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, handler),
-                    signal.SIGINT: signal.signal(signal.SIGINT, handler)}
-    except ValueError:  # not the main thread: leave signals alone
-        previous = {}
-    try:
-        yield
-        _check_interrupt()  # one that arrived during the command's last import
-    finally:
-        for sig, prev in previous.items():
-            signal.signal(sig, prev)
-        sys.unraisablehook = hook
-
-
-def _importing(frame) -> bool:
-    """Whether ``frame`` runs inside an ``import`` (importlib's frames are on its stack)."""
-    while frame is not None:
-        if frame.f_code.co_filename.startswith("<frozen importlib"):
-            return True
-        frame = frame.f_back
-    return False
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -251,18 +196,18 @@ class _Log:
         start's steps and cost) after the stage's text on the spinner line."""
         from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-        _check_interrupt()
+        check_interrupt()
         t0 = time.perf_counter()
         with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
                       console=self.console, transient=True) as bar:
             task = bar.add_task(text + " ...", total=None)
 
             def note(line: str) -> None:
-                _check_interrupt()  # a stage boundary: a remembered signal stops here
+                check_interrupt()  # a stage boundary: a remembered signal stops here
                 bar.update(task, description=f"{text} ... {_printable(line)}", refresh=True)
 
             yield note
-        _check_interrupt()
+        check_interrupt()
         self.console.print(f"[dim]{text}: {time.perf_counter() - t0:.2f} s[/dim]")
 
     def print(self, *args, **kwargs):
@@ -358,7 +303,7 @@ def cmd_fit(args) -> int:
             result = outcome.to_dict()
             with log.stage("writing outputs"):
                 write_outcome(tmp, outcome, result, report=report)
-            _check_interrupt()  # a swallowed signal must not let the new result replace --out
+            check_interrupt()  # a swallowed signal must not let the new result replace --out
     finally:
         if report is not None:
             report.close()

@@ -205,13 +205,13 @@ def test_a_signal_during_an_import_is_raised_after_it(tmp_path, monkeypatch):
     # KeyboardInterrupt aborted the interpreter; it must wait for the import to end.
     import importlib
 
-    from fitter import cli
+    from fitter import interrupt
 
     (tmp_path / "slow_native_stand_in.py").write_text(
         "import os, signal\nos.kill(os.getpid(), signal.SIGINT)\nFINISHED = True\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     imported = []
     with pytest.raises(KeyboardInterrupt):
-        with cli._signals_as_interrupt():
+        with interrupt.signals_as_interrupt():
             imported.append(importlib.import_module("slow_native_stand_in"))
     assert imported and imported[0].FINISHED  # the module's body ran to its end
