@@ -200,9 +200,9 @@ def _reshaped(cos, shape):
 #: (N, S x columns)) with the lobe's values at the S window nodes, then each sample's
 #: two neighbouring nodes picked by hat weights; not a per-sample gather (~20x slower
 #: here). XLA's CPU batched dot is slow for many small blocks: at 128^2 (26 k samples,
-#: 2 cores) B = 256, S = 4 (3.7 % padding rows) took the Jacobian's sky sum from ~87
-#: to ~70 ms and the render's from ~46 to ~40 ms against B = 16 with one node per block
-#: (``benchmarks/README.md``); S = 3 pads 8 %, S = 6 costs 6/4 the columns.
+#: 2 cores) B = 256, S = 4 (3.7 % padding rows) took the sky sum from ~42 to ~21 ms
+#: (render, one column) and ~72 to ~38 ms (3 columns) against B = 16 of one node;
+#: S = 3 pads 8 % and S = 5 or B = 512 were slower (``benchmarks/README.md``).
 BLOCK = 256
 WINDOW = 4
 
@@ -236,6 +236,11 @@ def blocks(node, frac, nodes: int, block: int = BLOCK, window: int = WINDOW):
     order = np.concatenate(order)
     start = np.asarray(start, np.int32)
     pick = np.maximum(order, 0)
+    # frac on the grid of pos's spacing below S - 1: pos is then exact and ``sky_sum``'s
+    # hat weights are exactly 1 - frac and frac, whichever window a sample lands in (a
+    # pixel subset's blocks give the whole's values bit for bit); <= 2^-52 relative.
+    q = np.spacing(float(s - 1))
+    frac = np.round(frac / q) * q
     pos = np.where(order < 0, 0.0, node[pick] - np.repeat(start, block) + frac[pick])
     return order, start[:, None] + np.arange(s, dtype=np.int32), pos
 
@@ -267,9 +272,11 @@ def sky_sum(h, window, pos, c):
     else:
         out = jnp.einsum("brn,bnk->brk", c.astype(h.dtype), hw)
     out = out.reshape(nb, b, 3, s, k)
-    w = jnp.maximum(1.0 - jnp.abs(pos.reshape(nb, b, 1).astype(h.dtype) - jnp.arange(s)), 0.0)
-    val = jnp.einsum("brcsk,brs->kbrc", out, w)  # (K, nb, B, 3)
-    return val.reshape(lead + (nb * b, 3))
+    at = pos.reshape(nb, b, 1).astype(h.dtype) - jnp.arange(s, dtype=h.dtype)
+    w = jnp.maximum(1.0 - jnp.abs(at), 0.0)  # (nb, B, S)
+    # an elementwise sum, not a dot: XLA makes (1, S) x (S, 3 K) matrices per sample of it
+    val = jnp.sum(out * w[:, :, None, :, None], axis=3)  # (nb, B, 3, K)
+    return jnp.moveaxis(val.reshape(nb * b, 3, k), -1, 0).reshape(lead + (nb * b, 3))
 
 
 def _flat_levels(sky):
