@@ -130,12 +130,9 @@ def _brdf_unit(lobe, p, opts, geo: Geometry, lights=None):
     def light_sum(g, weight, color, rgb):  # g: ([T,] L, P, K[, 3]); rgb: colour axis
         if rgb:
             return jnp.einsum("...lpkc,lpk,lc->...pc", g, weight, color)
-        # K summed first, then the few lights as one fused sum: as an einsum XLA made a
-        # tiny (columns, L) x (L, 3) product per pixel, or read the columns transposed
-        # (the sun's 32 x 25 k samples' Jacobian: 108 ms, 30 ms so).
-        x = jnp.sum(g * weight, -1)  # (..., L, P)
-        zero = jnp.zeros(x.shape[:-2] + (x.shape[-1], 3), x.dtype)
-        return sum((x[..., j, :, None] * color[j] for j in range(color.shape[0])), zero)
+        # K summed first: as one einsum XLA made a tiny (T, L) x (L, 3) product per pixel
+        # of the Jacobian's columns (the sun's 32 x 25 k samples: 108 -> 63 ms).
+        return jnp.einsum("...lp,lc->...pc", jnp.sum(g * weight, -1), color)
 
     def unit(theta, cos, weight, color):
         g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (L, P, K)
