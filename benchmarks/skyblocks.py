@@ -26,11 +26,11 @@ import numpy as np
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir)
 sys.path.insert(0, ROOT)
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
+import jax
+import jax.numpy as jnp
 
-from fitter import serialize, skystencil  # noqa: E402
-from fitter.cases import CASES  # noqa: E402
+from fitter import serialize, skystencil
+from fitter.cases import CASES
 
 R = importlib.import_module("fitter.render")
 
