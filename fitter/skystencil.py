@@ -200,9 +200,10 @@ def _reshaped(cos, shape):
 #: (N, S x columns)) with the lobe's values at the S window nodes, then each sample's
 #: two neighbouring nodes picked by hat weights; not a per-sample gather (~20x slower
 #: here). XLA's CPU batched dot is slow for many small blocks: at 128^2 (26 k samples,
-#: 2 cores) B = 256, S = 4 (3.7 % padding rows) took the sky sum from ~42 to ~21 ms
-#: (render, one column) and ~72 to ~38 ms (3 columns) against B = 16 of one node;
-#: S = 3 pads 8 % and S = 5 or B = 512 were slower (``benchmarks/README.md``).
+#: both cores free) B = 256, S = 4 (3.7 % padding rows) took the sky sum from ~42 to
+#: ~21 ms (render, one column) and ~72 to ~38 ms (3 columns) against B = 16 of one
+#: node, which runs on one thread; S = 3 pads 8 % and S = 5 or B = 512 were slower
+#: (``benchmarks/skyblocks.py``, ``benchmarks/README.md``).
 BLOCK = 256
 WINDOW = 4
 
@@ -360,10 +361,11 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
 
     ``normal``, ``view`` (S, 3): unit normal and unit direction to the camera
     (n . view > 0); ``weight`` (S,) the sample's quadrature weight (default 1).
-    Returns (order (R,): sample index, -1 for padding; window (nb, S); pos
-    (R,): ``blocks``'; c (nb, B x 3, N)) with c = weight x Q(theta_o) x the prefiltered
-    radiance at the cell's cos-weighted centroid / cos_o, per sample, RGB
-    channel and cell; Q = int_cell max(cos_i, 0) dw is tabulated per cell
+    Returns (order (R,): sample index, -1 for padding; window (nb, S) and pos
+    (R,) as ``blocks`` gives them; c (nb, B x 3, N)) with c = weight x
+    Q(theta_o) x the prefiltered radiance at the cell's cos-weighted centroid
+    / cos_o, per sample, RGB channel and cell; Q = int_cell max(cos_i, 0) dw
+    is tabulated per cell
     (exact for a constant sky), and the 1/cos_o undoes the cos_o that
     ``node_geometry`` folds into the lobe (smooth up to the horizon).
 
