@@ -43,6 +43,7 @@ from .skystencil import (  # noqa: F401
     MIN_PHI,
     N_THETA,
     RING_EDGES,
+    WINDOW,
     Detail,
     blocks,
     node_angles,

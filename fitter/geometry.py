@@ -49,9 +49,11 @@ class Geometry(NamedTuple):
             silhouette and limb; ``fitter.envlight``), -1 for padding, past
             the last row for a pixel a ``subset`` dropped; (0,)
             without environment light. Samples come in blocks of
-            ``envlight.BLOCK`` sharing one theta_o node (``envlight.blocks``).
-        env_node: (R / B,) int, each block's theta_o node; env_frac (R,) the
-            sample's position towards the next node (``envlight.sky_table``).
+            ``envlight.BLOCK`` whose theta_o nodes lie in a window of S
+            consecutive nodes (``envlight.blocks``).
+        env_node: (R / B, S) int, each block's window of theta_o nodes;
+            env_frac (R,) the sample's position in it: its lower node - the
+            window's first + the fraction towards the next (``envlight.blocks``).
         env_color: (R / B, B x 3, N), per sample and RGB channel and
             sky-stencil cell int L cos_i dw times the sample's weight in its
             pixel / cos_o (0 for unlit cells and padding).

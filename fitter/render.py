@@ -128,8 +128,11 @@ def _brdf_unit(lobe, p, opts, geo: Geometry, lights=None):
     """
 
     def light_sum(g, weight, color, rgb):  # g: ([T,] L, P, K[, 3]); rgb: colour axis
-        return jnp.einsum("...lpkc,lpk,lc->...pc" if rgb else "...lpk,lpk,lc->...pc",
-                          g, weight, color)
+        if rgb:
+            return jnp.einsum("...lpkc,lpk,lc->...pc", g, weight, color)
+        # K summed first: as one einsum XLA made a tiny (T, L) x (L, 3) product per pixel
+        # of the Jacobian's columns (the sun's 32 x 25 k samples: 108 -> 63 ms).
+        return jnp.einsum("...lp,lc->...pc", jnp.sum(g * weight, -1), color)
 
     def unit(theta, cos, weight, color):
         g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (L, P, K)

@@ -194,37 +194,67 @@ def _reshaped(cos, shape):
     return type(cos)(*(np.reshape(a, shape) for a in cos))
 
 
-#: Env samples per block of the sky sum: a block holds samples of one theta_o node only,
-#: so the sum is one batched matrix product (blocks x (B x 3, N) @ (N, columns)) with
-#: the lobe's values at two nodes per block, not a per-sample gather (~20x slower here).
-BLOCK = 16
+#: Env samples per block of the sky sum and theta_o nodes per block's window: a block
+#: holds B consecutive node-sorted samples whose nodes and next nodes lie in a window of
+#: S consecutive nodes, so the sum is one batched matrix product (blocks x (B x 3, N) @
+#: (N, S x columns)) with the lobe's values at the S window nodes, then each sample's
+#: two neighbouring nodes picked by hat weights; not a per-sample gather (~20x slower
+#: here). XLA's CPU batched dot is slow for many small blocks: at 128^2 (26 k samples,
+#: both cores free) B = 256, S = 4 (3.7 % padding rows) took the sky sum from ~42 to
+#: ~21 ms (render, one column) and ~72 to ~38 ms (3 columns) against B = 16 of one
+#: node, which runs on one thread; S = 3 pads 8 % and S = 5 or B = 512 were slower
+#: (``benchmarks/skyblocks.py``, ``benchmarks/README.md``).
+BLOCK = 256
+WINDOW = 4
 
 
-def blocks(node, block: int = BLOCK):
-    """Blocked order of env samples by node: (order (R,) sample index or -1 for padding,
-    block_node (R / block,)); each block's samples share one node."""
+def blocks(node, frac, nodes: int, block: int = BLOCK, window: int = WINDOW):
+    """Blocked order of env samples by theta_o node, for ``sky_sum``.
+
+    node (R0,) int, each sample's lower node (0 .. ``nodes`` - 2), frac (R0,) its
+    linear fraction towards the next. Returns (order (R,): sample index or -1 for
+    padding, R a multiple of ``block``; window (nb, S) int32: each block's S =
+    min(``window``, ``nodes``) consecutive nodes; pos (R,): the sample's position
+    in its block's window, node - window[0] + frac in [0, S - 1], 0 for padding).
+    Greedy: a block is closed when full or when the next sample's next node would
+    leave its window (starting at its first sample's node, clipped to the last S).
+    """
     node = np.asarray(node)
-    order, bnode = [], []
+    frac = np.asarray(frac, np.float64)
+    s = max(min(window, nodes), 2)
     srt = np.argsort(node, kind="stable")
-    bounds = np.searchsorted(node[srt], np.arange(int(node.max(initial=-1)) + 2))
-    for j in range(bounds.size - 1):
-        idx = srt[bounds[j]:bounds[j + 1]]
-        if idx.size:
-            nb = -(-idx.size // block)
-            order.append(np.concatenate([idx, np.full(nb * block - idx.size, -1)]))
-            bnode += [j] * nb
+    ns = node[srt]
+    order, start = [], []
+    i = 0
+    while i < ns.size:
+        j0 = max(min(int(ns[i]), nodes - s), 0)
+        end = min(i + block, int(np.searchsorted(ns, j0 + s - 2, "right")))
+        order.append(np.concatenate([srt[i:end], np.full(block - (end - i), -1)]))
+        start.append(j0)
+        i = end
     if not order:
-        return np.zeros(0, np.int64), np.zeros(0, np.int32)
-    return np.concatenate(order), np.asarray(bnode, np.int32)
+        return np.zeros(0, np.int64), np.zeros((0, s), np.int32), np.zeros(0)
+    order = np.concatenate(order)
+    start = np.asarray(start, np.int32)
+    pick = np.maximum(order, 0)
+    # frac on the grid of pos's spacing below S - 1: pos is then exact and ``sky_sum``'s
+    # hat weights are exactly 1 - frac and frac, whichever window a sample lands in (a
+    # pixel subset's blocks give the whole's values bit for bit); <= 2^-52 relative.
+    q = np.spacing(float(s - 1))
+    frac = np.round(frac / q) * q
+    pos = np.where(order < 0, 0.0, node[pick] - np.repeat(start, block) + frac[pick])
+    return order, start[:, None] + np.arange(s, dtype=np.int32), pos
 
 
-def sky_sum(h, block_node, frac, c):
+def sky_sum(h, window, pos, c):
     """Per env sample sum over cells of the node-interpolated h times c (JAX).
 
     h: (..., T, N) or (..., T, N, 3) lobe x ``node_geometry`` weight (an RGB
-    last axis for coloured lobes); block_node (nb,); frac (R,) the sample's
-    position between its block's node and the next; c (nb, B x 3, N): samples
-    x RGB rows (``sky_table``, blocked by ``blocks``). Returns (..., R, 3).
+    last axis for coloured lobes); window (nb, S) each block's nodes and pos
+    (R,) the sample's position in them (``blocks``); c (nb, B x 3, N): samples
+    x RGB rows (``sky_table``). Returns (..., R, 3): per sample sum_n c (h at
+    its node + pos's fraction towards the next, linearly), as hat weights
+    max(0, 1 - |pos - s|) over the window's S products c h[window[s]].
     """
     import jax.numpy as jnp
 
@@ -232,22 +262,22 @@ def sky_sum(h, block_node, frac, c):
     nd = 3 if rgb else 2
     lead = h.shape[:h.ndim - nd]
     nb, rows, n = c.shape
-    b = rows // 3
+    b, s = rows // 3, window.shape[-1]
     # (T, N, [3,] K): the lobe's columns (lead axes) last, for a plain batched matmul.
     ht = jnp.moveaxis(h.reshape((-1,) + h.shape[-nd:]), 0, -1)
-    h0 = jnp.take(ht, block_node, axis=0)
-    h1 = jnp.take(ht, block_node + 1, axis=0)
     k = ht.shape[-1]
-    if rgb:  # per channel: (nb, B, 3, N) x (nb, N, 3, K)
-        c4 = c.reshape(nb, b, 3, n).astype(h.dtype)
-        out = jnp.einsum("bscn,bnck->bsck", c4, jnp.concatenate([h0, h1], -1))
+    hw = jnp.moveaxis(jnp.take(ht, window, axis=0), 1, -2)  # (nb, N, [3,] S, K)
+    hw = hw.reshape(hw.shape[:-2] + (s * k,))
+    if rgb:  # per channel: (nb, B, 3, N) x (nb, N, 3, S K)
+        out = jnp.einsum("bscn,bnck->bsck", c.reshape(nb, b, 3, n).astype(h.dtype), hw)
     else:
-        out = jnp.einsum("brn,bnk->brk", c.astype(h.dtype), jnp.concatenate([h0, h1], -1))
-        out = out.reshape(nb, b, 3, 2 * k)
-    f = frac.reshape(nb, b, 1, 1).astype(h.dtype)
-    val = out[..., :k] + (out[..., k:] - out[..., :k]) * f  # (nb, B, 3, K)
-    val = jnp.moveaxis(val.reshape(nb * b, 3, k), -1, 0)  # (K, R, 3)
-    return val.reshape(lead + (nb * b, 3))
+        out = jnp.einsum("brn,bnk->brk", c.astype(h.dtype), hw)
+    out = out.reshape(nb, b, 3, s, k)
+    at = pos.reshape(nb, b, 1).astype(h.dtype) - jnp.arange(s, dtype=h.dtype)
+    w = jnp.maximum(1.0 - jnp.abs(at), 0.0)  # (nb, B, S)
+    # an elementwise sum, not a dot: XLA makes (1, S) x (S, 3 K) matrices per sample of it
+    val = jnp.sum(out * w[:, :, None, :, None], axis=3)  # (nb, B, 3, K)
+    return jnp.moveaxis(val.reshape(nb * b, 3, k), -1, 0).reshape(lead + (nb * b, 3))
 
 
 def _flat_levels(sky):
@@ -331,10 +361,11 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
 
     ``normal``, ``view`` (S, 3): unit normal and unit direction to the camera
     (n . view > 0); ``weight`` (S,) the sample's quadrature weight (default 1).
-    Returns (order (R,): sample index, -1 for padding; block_node (nb,); frac
-    (R,); c (nb, B x 3, N)) with c = weight x Q(theta_o) x the prefiltered
-    radiance at the cell's cos-weighted centroid / cos_o, per sample, RGB
-    channel and cell; Q = int_cell max(cos_i, 0) dw is tabulated per cell
+    Returns (order (R,): sample index, -1 for padding; window (nb, S) and pos
+    (R,) as ``blocks`` gives them; c (nb, B x 3, N)) with c = weight x
+    Q(theta_o) x the prefiltered radiance at the cell's cos-weighted centroid
+    / cos_o, per sample, RGB channel and cell; Q = int_cell max(cos_i, 0) dw
+    is tabulated per cell
     (exact for a constant sky), and the 1/cos_o undoes the cos_o that
     ``node_geometry`` folds into the lobe (smooth up to the horizon).
 
@@ -354,20 +385,23 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     lh, lw, loff = (np.asarray(a, np.int32) for a in (lh, lw, loff))
     weight = np.ones(normal.shape[0]) if weight is None else np.asarray(weight, np.float64)
     node, fr = _node_of(np.arccos(np.clip(np.sum(normal * view, -1), 0.0, 1.0)), nodes)
-    order, bnode = blocks(node)
+    order, window, pos = blocks(node, fr, nodes)
     n = size_tab.shape[1]
     if not order.size:
-        return order, bnode, np.zeros(0), np.zeros((0, 3 * BLOCK, n))
-    step = min(chunk, order.size)
-    extra = (-order.size) % step  # whole padding blocks: every chunk the same shape
-    order = np.concatenate([order, np.full(extra, -1)])
-    bnode = np.concatenate([bnode, np.zeros(extra // BLOCK, np.int32)])
+        return order, window, pos, np.zeros((0, 3 * BLOCK, n))
+    nb = window.shape[0]
+    n_chunks = -(-order.size // max(chunk, BLOCK))
+    per = -(-nb // n_chunks)  # blocks per chunk
+    extra = (-nb) % per  # whole padding blocks: every chunk the same shape
+    order = np.concatenate([order, np.full(extra * BLOCK, -1)])
+    window = np.concatenate([window, np.broadcast_to(window[:1], (extra, window.shape[1]))])
+    pos = np.concatenate([pos, np.zeros(extra * BLOCK)])
+    step = per * BLOCK
     pad = order < 0
     pick = np.where(pad, 0, order)
     nrm = np.where(pad[:, None], [0.0, 0.0, 1.0], normal[pick])
     wo = np.where(pad[:, None], [0.0, 0.0, 1.0], view[pick])
     wt = np.where(pad, 0.0, weight[pick])
-    frac = np.where(pad, 0.0, fr[pick])
     # to_device: no copy kernel compiled per shape, as jnp.asarray of a host array does
     flt = lambda a: to_device(a, dtype if np.asarray(a).dtype.kind == "f" else None)  # noqa: E731
     consts = [flt(a) for a in (q_tab, cen_tab, flat, lh, lw, loff, lo, fl)]
@@ -375,4 +409,4 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     # table: no host copy of it (a fresh 0.5 GB costs seconds of page faults here).
     c = _table_all(*(flt(x.reshape((-1, step) + x.shape[1:])) for x in (nrm, wo, wt)),
                    *consts, rows=3 * BLOCK)
-    return order, bnode, frac, c
+    return order, window, pos, c

@@ -1,0 +1,70 @@
+"""The sky sum's blocked layout (``fitter.skystencil.blocks``, ``sky_sum``): windows of
+theta_o nodes per block, checked against a direct per-sample evaluation in NumPy."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from fitter import skystencil
+
+
+def _samples(rng, count, nodes):
+    """Lower nodes crowded towards node 0 and the last (as a sphere's are), fractions in
+    [0, 1] with both ends exactly."""
+    node = np.concatenate([rng.integers(0, nodes - 1, count // 2),
+                           np.minimum(rng.geometric(0.3, count - count // 2) - 1, nodes - 2),
+                           ])[rng.permutation(count)]
+    node = np.where(rng.random(count) < 0.3, nodes - 2 - node, node).astype(np.int32)
+    frac = rng.random(count)
+    frac[:3], frac[3:6] = 0.0, 1.0
+    node[3] = nodes - 2  # the last node's far end: pos = S - 1
+    return node, frac
+
+
+@pytest.mark.parametrize(("nodes", "block", "window"),
+                         [(9, 32, 3), (9, 16, 2), (97, 64, 4), (3, 8, 4), (2, 8, 4)])
+def test_blocks_cover_every_sample_once_within_its_window(nodes, block, window):
+    node, frac = _samples(np.random.default_rng(nodes + block), 500, nodes)
+    order, win, pos = skystencil.blocks(node, frac, nodes, block=block, window=window)
+    s = max(min(window, nodes), 2)
+    assert order.size % block == 0 and win.shape == (order.size // block, s)
+    np.testing.assert_array_equal(np.sort(order[order >= 0]), np.arange(node.size))
+    assert np.all(win.min(1) >= 0) and np.all(win.max(1) <= nodes - 1)
+    np.testing.assert_array_equal(np.diff(win, axis=1), 1)  # consecutive nodes
+    start = np.repeat(win[:, 0], block)
+    real = order >= 0
+    lower = node[order[real]] - start[real]
+    assert np.all(lower >= 0) and np.all(lower + 1 <= s - 1)  # both neighbours in the window
+    np.testing.assert_allclose(pos[real], lower + frac[order[real]], rtol=0, atol=1e-15)
+    assert np.all(pos[~real] == 0)
+
+
+@pytest.mark.parametrize("rgb", [False, True])
+@pytest.mark.parametrize(("block", "window"), [(32, 3), (16, 2), (64, 5)])
+def test_windowed_sum_equals_a_direct_per_sample_evaluation(rgb, block, window):
+    """Reference: per sample, h linearly interpolated between its node and the next,
+    summed against the sample's row of c (NumPy, no blocks)."""
+    rng = np.random.default_rng(block + window + rgb)
+    nodes, cells, cols, count = 11, 20, 3, 400
+    node, frac = _samples(rng, count, nodes)
+    c = rng.normal(size=(count, 3, cells))
+    h = rng.normal(size=(cols, nodes, cells) + ((3,) if rgb else ()))
+    f = frac.reshape((1, count) + (1,) * (h.ndim - 2))
+    hs = h[:, node] * (1 - f) + h[:, node + 1] * f  # (K, R0, N[, 3])
+    ref = (np.einsum("rcn,krnc->krc", c, hs) if rgb else np.einsum("rcn,krn->krc", c, hs))
+
+    order, win, pos = skystencil.blocks(node, frac, nodes, block=block, window=window)
+    cb = np.where((order >= 0)[:, None, None], c[np.maximum(order, 0)], 0.0)
+    cb = cb.reshape(win.shape[0], 3 * block, cells)
+    val = np.asarray(skystencil.sky_sum(jnp.asarray(h), jnp.asarray(win), jnp.asarray(pos),
+                                        jnp.asarray(cb)))
+    assert val.shape == (cols, order.size, 3)
+    np.testing.assert_allclose(val[:, order >= 0], ref[:, order[order >= 0]], rtol=1e-12,
+                               atol=1e-12 * np.abs(ref).max())
+    assert np.all(val[:, order < 0] == 0)
+    # no lead axes: one lobe column
+    one = np.asarray(skystencil.sky_sum(jnp.asarray(h[0]), jnp.asarray(win), jnp.asarray(pos),
+                                        jnp.asarray(cb)))
+    np.testing.assert_allclose(one, val[0], rtol=1e-13, atol=1e-13 * np.abs(ref).max())
