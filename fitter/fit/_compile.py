@@ -4,6 +4,7 @@ this process (and on disk through ``_cache``) for every later fit."""
 from __future__ import annotations
 
 import functools
+import threading
 import time
 
 import jax
@@ -158,19 +159,12 @@ def _batch_fn(spec: Spec, batch: str, **static):
     return run
 
 
-def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
-    """Compile (once per structure and shapes) and return (executable, seconds spent).
-
-    ``kind``: ``"solve"`` (multi-start solve of one target), ``"batch"`` (one
-    start per stacked target), ``"jacres"`` (``jacobian_r``), ``"jacfull"``
-    (``jacobian_full``), ``"gauss_newton"`` (``gauss_newton_step``) or
-    ``"residuals"`` (``residuals_at``).
-    ``once``: the code runs once on few pixels: compiled with ``ONCE_XLA_OPTIONS``.
-    """
+def _key(kind: str, spec: Spec, args, once: bool, static: dict):
     shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
-    key = (kind, spec, tuple(sorted(static.items())), str(shapes), once)
-    if key in _COMPILED:
-        return _COMPILED[key], 0.0
+    return (kind, spec, tuple(sorted(static.items())), str(shapes), once)
+
+
+def _build(kind: str, spec: Spec, args, once: bool, static: dict, key):
     if kind == "solve":
         f = _solve_fn(spec, **static)
     elif kind == "batch":
@@ -184,14 +178,73 @@ def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
     else:  # Jacobian (as its R factor in float64) and residuals in one pass
         f = functools.partial(jacobian_r, spec)
     # optimistix creates some constants (e.g. LM's damping) as Python floats, which
-    # x64 would make float64: a float32 fit is traced with x64 off.
+    # x64 would make float64: a float32 fit is traced with x64 off (thread-local).
     single = jnp.result_type(args[0]) == jnp.float32
-    t0 = time.perf_counter()
     with jax.enable_x64(not single):
         # (residuals_at's loop, like the solver's, runs 2x faster without LICM)
         options = (ONCE_XLA_OPTIONS if once else FAST_XLA_OPTIONS
                    if kind in ("jacres", "jacfull", "gauss_newton") else SOLVE_XLA_OPTIONS)
-        exe = compile_cached(f, args, repr(key), options)
+        return compile_cached(f, args, repr(key), options)
+
+
+#: Executables being compiled on a thread (``compile_ahead``): {key: (thread, [executable])}.
+_PENDING: dict = {}
+
+
+def compile_ahead(kind: str, spec: Spec, args, once: bool = False, **static) -> None:
+    """Start compiling what ``compiled(kind, spec, args, once, **static)`` will
+    ask for on a thread, so that XLA's compile (which releases the
+    interpreter) runs beside the caller's work; ``compiled`` then waits for it.
+
+    The same function, options and shapes make the same executable, so a fit
+    gives the same result either way. A guess that turns out wrong (other
+    shapes or structure when asked) is only compile time spent; a failure on
+    the thread is compiled again where asked. ``wait`` joins the threads.
+    """
+    key = _key(kind, spec, args, once, static)
+    if key in _COMPILED or key in _PENDING:
+        return
+    box: list = []
+
+    def run():
+        try:
+            box.append(_build(kind, spec, args, once, static, key))
+        except Exception:  # noqa: BLE001 (compiled again, and any error raised, where asked)
+            pass
+
+    thread = threading.Thread(target=run, name="fitter-compile-ahead", daemon=True)
+    _PENDING[key] = (thread, box)
+    thread.start()
+
+
+def wait() -> None:
+    """Join every ``compile_ahead`` thread; keep what they compiled for later fits."""
+    while _PENDING:
+        key, (thread, box) = _PENDING.popitem()
+        thread.join()
+        if box:
+            _COMPILED.setdefault(key, box[0])
+
+
+def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
+    """Compile (once per structure and shapes) and return (executable, seconds spent).
+
+    ``kind``: ``"solve"`` (multi-start solve of one target), ``"batch"`` (one
+    start per stacked target), ``"jacres"`` (``jacobian_r``), ``"jacfull"``
+    (``jacobian_full``), ``"gauss_newton"`` (``gauss_newton_step``) or
+    ``"residuals"`` (``residuals_at``).
+    ``once``: the code runs once on few pixels: compiled with ``ONCE_XLA_OPTIONS``.
+    One started by ``compile_ahead`` is waited for (seconds: the wait).
+    """
+    key = _key(kind, spec, args, once, static)
+    if key in _COMPILED:
+        return _COMPILED[key], 0.0
+    t0 = time.perf_counter()
+    ahead = _PENDING.pop(key, None)
+    if ahead is not None:
+        ahead[0].join()
+    exe = ahead[1][0] if ahead is not None and ahead[1] else _build(kind, spec, args, once,
+                                                                     static, key)
     _COMPILED[key] = exe
     return exe, time.perf_counter() - t0
 

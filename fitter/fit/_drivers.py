@@ -9,6 +9,7 @@ check identifiability at the solution, hold and refit -> verdict.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -19,8 +20,9 @@ import numpy as np
 
 from ..limits import check_fit
 from ..scene import Scene
-from . import _args, _coarse, _discretisation
-from ._compile import best_start, compiled, jac_res, r_factor, remember_jacobian
+from . import _args, _coarse, _compile, _discretisation
+from ._compile import (best_start, compile_ahead, compiled, jac_res, r_factor,
+                       remember_jacobian)
 from ._covariance import residual_variance
 from ._identify import (WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction,
                         weak_profile)
@@ -40,6 +42,21 @@ START_CHECK_STRIDE = 8
 AUTO_STARTS = 4
 
 
+def _settled(f):
+    """``f`` that leaves no thread of its own running (``compile_ahead``,
+    ``_discretisation.prefetch``) when it returns or raises."""
+    @functools.wraps(f)
+    def g(*args, **kwargs):
+        try:
+            return f(*args, **kwargs)
+        finally:
+            _compile.wait()
+            _discretisation.wait()
+
+    return g
+
+
+@_settled
 def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None,
         fixed: Mapping[str, Any] | None = None, bounds: Mapping[str, tuple] | None = None,
         solver: str = "levenberg_marquardt", mask="interior", exclude=None, weights=None,
@@ -114,6 +131,9 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                               n_starts=n_starts)
     t_compile = 0.0
     if identifiability:
+        if not coarse:  # the solve's compile beside the check's (the same, unless it holds one)
+            compile_ahead("solve", problem.spec, (problem.cast(problem.z_init()[None]),
+                                                  problem.data(0)), **problem.static)
         say("checking which parameters the pixels depend on")
         problem, t_compile = _hold_dead_columns(problem, coarse)
         if not problem.blocks:
