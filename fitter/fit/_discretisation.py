@@ -165,8 +165,8 @@ def sample_rows(labels) -> tuple[np.ndarray, np.ndarray]:
 #: (pixels x k'^2; 2932 x 64 at the quickstart's 128^2): it is held beside the
 #: solve's own memory.
 PREFETCH_SAMPLES = 2**19
-#: The finer geometry being made ahead: {key: (thread, [prepared geometry or
-#: None, (executable key, executable) or None])}, one.
+#: The finer geometries being made ahead (one fit's): {key: (thread, [prepared
+#: geometry or None, (executable key, executable) or None])}.
 _AHEAD: dict = {}
 
 
@@ -187,52 +187,60 @@ def _host_params(params) -> dict:
 
 
 def prefetch(problem) -> None:
-    """Start making the finer model's geometry of the sampled fitted pixels
+    """Start making the finer model's geometries of the sampled fitted pixels
     (``finer_values``) on a thread, while the solver runs, and compiling the
-    executable that renders it (``_render``).
+    executables that render them (``_render``).
 
-    Both depend on the scene, the fitted pixels and the parameters' shapes
-    only, not on the fit. The geometry is NumPy (0.1 s at the quickstart's
-    128^2, 8 x 8 samples), which runs beside XLA's execution of the solve and
-    the profile; XLA's compile (0.5 s for the dielectric at 128^2) releases
-    the interpreter too. Scenes with environment-lit opaque lobes (sun cells)
-    are made where they are needed. Whatever fails on the thread
-    is done again where needed (``_geometry``, ``_render``); ``wait`` joins it.
+    They depend on the scene, the fitted pixels and the parameters' shapes
+    only, not on the fit. The geometries are NumPy (0.1 s at the quickstart's
+    128^2, 8 x 8 samples; env_plastic's two with sun cells 1.9 s), which runs
+    beside XLA's execution of the solve and the profile; XLA's compile (0.5 s
+    for the dielectric at 128^2) releases the interpreter too. Whatever fails
+    on the thread is done again where needed (``_geometry``, ``_render``);
+    ``wait`` joins it.
     """
     r = problem.renderer
     scene = r.scene
-    if envlight.lit_by_environment(scene, r.material):
-        return
     rows, _ = sample_rows(_adequacy.pixel_regions(problem.geometry))
     flat = np.asarray(r.pixel_index)[problem.rows][rows]
     fine = scene.replace(supersampling=finer_supersampling(scene))
-    if flat.size * fine.supersampling**2 > PREFETCH_SAMPLES:
+    lit = envlight.lit_by_environment(scene, r.material)
+    sun = (envlight.SUN_CELL, envlight.SUN_SUB)
+    # (scene, sun cells or None, material) of each geometry ``finer_values`` makes
+    jobs = [(fine, sun if lit else None, finer_material(r.material))]
+    if lit:
+        jobs.append((scene, FINER_SUN, r.material))
+    if flat.size * sum(s.supersampling**2 for s, _, _ in jobs) > PREFETCH_SAMPLES:
         return
     base = problem.base_dir
-    key = _geometry_key(fine, base, r.env_type, False, flat)
-    if key in _GEOMETRIES:  # a refit: kept
+    keys = [_geometry_key(s, base, r.env_type, cells or False, flat) for s, cells, _ in jobs]
+    if keys[0] in _GEOMETRIES:  # a refit: kept
         return
     env64 = load_environment(scene.environment, base)
     free = {blk.key for blk in problem.blocks}
     # The complete parameters' shapes (``finer_values`` renders the fit's values).
     params = _host_params(user_values(problem.spec, problem.z_init(), {
         k: v for k, v in problem.init_full.items() if k not in free}))
-    material = finer_material(r.material)
-    box: list = [None, None]
+    boxes: list = [[None, None] for _ in jobs]
 
     def make():
         try:
-            box[0] = _prepared(build_geometry(fine, r.env_type, env64, None, pixels=flat), flat)
-            args, shapes = _render_args(params, box[0][0], env64, _sphere(scene))
-            exe_key = _render_key(material, r.env_type, shapes)
-            box[1] = exe_key, _compile_render(args, material, r.env_type, exe_key)
+            for (s, cells, material), box in zip(jobs, boxes):
+                lighting = _sun_only(scene, env64, cells) if cells else None
+                if cells == FINER_SUN and (lighting is None or not lighting.sun_dir.shape[0]):
+                    break  # no sun: ``finer_values`` renders no finer sun
+                box[0] = _prepared(build_geometry(s, r.env_type, env64, lighting, pixels=flat),
+                                   flat)
+                args, shapes = _render_args(params, box[0][0], env64, _sphere(scene))
+                exe_key = _render_key(material, r.env_type, shapes)
+                box[1] = exe_key, _compile_render(args, material, r.env_type, exe_key)
         except Exception:  # noqa: BLE001 (made again, and any error raised, where needed)
             pass
 
     thread = threading.Thread(target=make, name="fitter-finer-geometry", daemon=True)
     wait()  # an earlier fit's, unused
     _AHEAD.clear()
-    _AHEAD[key] = (thread, box)
+    _AHEAD.update({key: (thread, box) for key, box in zip(keys, boxes)})
     thread.start()
 
 
