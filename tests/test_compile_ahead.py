@@ -40,17 +40,23 @@ def _fit(target, monkeypatch):
     """The fit, and the threads on which the solve and the finer render were compiled."""
     _fresh(monkeypatch)
     where = []
-    build, render = _compile._build, _discretisation._compile_render
+    build, lowered, render = (_compile._build, _compile._compile_lowered,
+                              _discretisation._compile_render)
 
     def build_rec(kind, *args):
         where.append((kind, threading.current_thread().name))
         return build(kind, *args)
+
+    def lowered_rec(*args):  # only compile_ahead's, only the solve's here
+        where.append(("solve", threading.current_thread().name))
+        return lowered(*args)
 
     def render_rec(*args):
         where.append(("finer render", threading.current_thread().name))
         return render(*args)
 
     monkeypatch.setattr(_compile, "_build", build_rec)
+    monkeypatch.setattr(_compile, "_compile_lowered", lowered_rec)
     monkeypatch.setattr(_discretisation, "_compile_render", render_rec)
     res = fitter.fit(target, SCENE, "lambert+torrance_sparrow")
     assert not [t.name for t in threading.enumerate() if t.name in THREADS]  # joined
@@ -95,7 +101,7 @@ def test_compiled_ahead_gives_the_same_fit(target, in_line, monkeypatch):
 
 
 def test_a_failure_on_the_thread_compiles_in_line(target, in_line, monkeypatch):
-    build, render = _compile._build, _discretisation._compile_render
+    lowered, render = _compile._compile_lowered, _discretisation._compile_render
 
     def fails_on_threads(f):
         def g(*args):
@@ -104,7 +110,7 @@ def test_a_failure_on_the_thread_compiles_in_line(target, in_line, monkeypatch):
             return f(*args)
         return g
 
-    monkeypatch.setattr(_compile, "_build", fails_on_threads(build))
+    monkeypatch.setattr(_compile, "_compile_lowered", fails_on_threads(lowered))
     monkeypatch.setattr(_discretisation, "_compile_render", fails_on_threads(render))
     res, where = _fit(target, monkeypatch)
     # Tried on the threads (and failed there), then compiled where used.
