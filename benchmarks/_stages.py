@@ -18,6 +18,7 @@ WRAPPED = (
     ("_setup", "Problem.make", "set-up (pixels, geometry, noise)"),
     ("_drivers", "searched", "start search and lobe options"),
     ("_drivers", "cheapened", "start search and lobe options"),
+    ("_drivers", "compile_ahead", "solve: traced ahead (compiled on a thread)"),
     ("_drivers", "_hold_dead_columns", "start check (dead columns)"),
     ("_coarse", "solve", "solve: coarse set-up and full-size Gauss-Newton steps"),
     ("_drivers", "solve_starts", "solve: Levenberg-Marquardt"),

@@ -71,6 +71,30 @@ def compile_cached(f, args, key: str, options: dict | None = None):
         return jax.jit(f).lower(*args).compile(options)
 
 
+def lower_cached(f, args, key: str):
+    """``jax.jit(f).lower(*args)``, from an exported trace on disk if there is one
+    (as ``compile_cached``, which also compiles; a trace found here that does not
+    compile is left to it). Tracing holds the interpreter and XLA's compile does
+    not: a caller may trace here and compile the result on a thread."""
+    folder = jax.config.jax_compilation_cache_dir
+    if not folder:
+        return jax.jit(f).lower(*args)
+    digest = hashlib.sha256((key + _source_fingerprint()).encode()).hexdigest()[:32]
+    path = os.path.join(folder, f"fitter-{digest}.jaxexport")
+    try:
+        with open(path, "rb") as fh:
+            exported = export.deserialize(bytearray(fh.read()))
+        return jax.jit(exported.call).lower(*args)
+    except Exception:  # noqa: BLE001 (missing, stale or unreadable: export anew below)
+        pass
+    try:
+        exported = export.export(jax.jit(f))(*args)
+        _store(folder, path, exported.serialize())
+        return jax.jit(exported.call).lower(*args)
+    except Exception:  # noqa: BLE001 (a cache problem must never break a fit)
+        return jax.jit(f).lower(*args)
+
+
 def _store(folder: str, path: str, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (a reader never sees half a file)."""
     os.makedirs(folder, exist_ok=True)

@@ -4,6 +4,7 @@ this process (and on disk through ``_cache``) for every later fit."""
 from __future__ import annotations
 
 import functools
+import threading
 import time
 
 import jax
@@ -11,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..compilation_cache import FAST_COMPILE
-from ._cache import compile_cached
+from ._cache import compile_cached, lower_cached
 from ._problem import Spec, residuals
 from ._solvers import make_solver, result_code
 
@@ -158,6 +159,96 @@ def _batch_fn(spec: Spec, batch: str, **static):
     return run
 
 
+def _key(kind: str, spec: Spec, args, once: bool, static: dict):
+    shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
+    return (kind, spec, tuple(sorted(static.items())), str(shapes), once)
+
+
+def _function(kind: str, spec: Spec, static: dict):
+    if kind == "solve":
+        return _solve_fn(spec, **static)
+    if kind == "batch":
+        return _batch_fn(spec, **static)
+    if kind == "jacfull":
+        return functools.partial(jacobian_full, spec)
+    if kind == "gauss_newton":
+        return functools.partial(gauss_newton_step, spec)
+    if kind == "residuals":
+        return functools.partial(residuals_at, spec)
+    return functools.partial(jacobian_r, spec)  # the Jacobian (as its R factor) and residuals
+
+
+def _options(kind: str, once: bool) -> dict:
+    # (residuals_at's loop, like the solver's, runs 2x faster without LICM)
+    return (ONCE_XLA_OPTIONS if once else FAST_XLA_OPTIONS
+            if kind in ("jacres", "jacfull", "gauss_newton") else SOLVE_XLA_OPTIONS)
+
+
+def _x64(args) -> bool:
+    """Whether to trace with x64: optimistix creates some constants (e.g. LM's
+    damping) as Python floats, which x64 would make float64, so a float32 fit is
+    traced with x64 off (a thread-local setting)."""
+    return jnp.result_type(args[0]) != jnp.float32
+
+
+def _build(kind: str, spec: Spec, args, once: bool, static: dict, key):
+    with jax.enable_x64(_x64(args)):
+        return compile_cached(_function(kind, spec, static), args, repr(key),
+                              _options(kind, once))
+
+
+def _compile_lowered(lowered, options: dict, x64: bool):
+    with jax.enable_x64(x64):
+        return lowered.compile(options)
+
+
+#: Executables being compiled on a thread (``compile_ahead``): {key: (thread, [executable])}.
+_PENDING: dict = {}
+
+
+def compile_ahead(kind: str, spec: Spec, args, once: bool = False, **static) -> None:
+    """Trace what ``compiled(kind, spec, args, once, **static)`` will ask for
+    here and start XLA's compile of it on a thread, which releases the
+    interpreter: the caller's next work (tracing and compiling a check) runs
+    beside it, and ``compiled`` then waits for it.
+
+    The same function, options and shapes make the same executable, so a fit
+    gives the same result either way. A guess that turns out wrong (other
+    shapes or structure when asked) is only compile time spent; a failure
+    here or on the thread is compiled again where asked. ``wait`` joins the
+    threads.
+    """
+    key = _key(kind, spec, args, once, static)
+    if key in _COMPILED or key in _PENDING:
+        return
+    x64 = _x64(args)
+    try:
+        with jax.enable_x64(x64):
+            lowered = lower_cached(_function(kind, spec, static), args, repr(key))
+    except Exception:  # noqa: BLE001 (traced again, and any error raised, where asked)
+        return
+    box: list = []
+
+    def run():
+        try:
+            box.append(_compile_lowered(lowered, _options(kind, once), x64))
+        except Exception:  # noqa: BLE001 (compiled again, and any error raised, where asked)
+            pass
+
+    thread = threading.Thread(target=run, name="fitter-compile-ahead", daemon=True)
+    _PENDING[key] = (thread, box)
+    thread.start()
+
+
+def wait() -> None:
+    """Join every ``compile_ahead`` thread; keep what they compiled for later fits."""
+    while _PENDING:
+        key, (thread, box) = _PENDING.popitem()
+        thread.join()
+        if box:
+            _COMPILED.setdefault(key, box[0])
+
+
 def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
     """Compile (once per structure and shapes) and return (executable, seconds spent).
 
@@ -166,32 +257,17 @@ def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
     (``jacobian_full``), ``"gauss_newton"`` (``gauss_newton_step``) or
     ``"residuals"`` (``residuals_at``).
     ``once``: the code runs once on few pixels: compiled with ``ONCE_XLA_OPTIONS``.
+    One started by ``compile_ahead`` is waited for (seconds: the wait).
     """
-    shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
-    key = (kind, spec, tuple(sorted(static.items())), str(shapes), once)
+    key = _key(kind, spec, args, once, static)
     if key in _COMPILED:
         return _COMPILED[key], 0.0
-    if kind == "solve":
-        f = _solve_fn(spec, **static)
-    elif kind == "batch":
-        f = _batch_fn(spec, **static)
-    elif kind == "jacfull":
-        f = functools.partial(jacobian_full, spec)
-    elif kind == "gauss_newton":
-        f = functools.partial(gauss_newton_step, spec)
-    elif kind == "residuals":
-        f = functools.partial(residuals_at, spec)
-    else:  # Jacobian (as its R factor in float64) and residuals in one pass
-        f = functools.partial(jacobian_r, spec)
-    # optimistix creates some constants (e.g. LM's damping) as Python floats, which
-    # x64 would make float64: a float32 fit is traced with x64 off.
-    single = jnp.result_type(args[0]) == jnp.float32
     t0 = time.perf_counter()
-    with jax.enable_x64(not single):
-        # (residuals_at's loop, like the solver's, runs 2x faster without LICM)
-        options = (ONCE_XLA_OPTIONS if once else FAST_XLA_OPTIONS
-                   if kind in ("jacres", "jacfull", "gauss_newton") else SOLVE_XLA_OPTIONS)
-        exe = compile_cached(f, args, repr(key), options)
+    ahead = _PENDING.pop(key, None)
+    if ahead is not None:
+        ahead[0].join()
+    exe = ahead[1][0] if ahead is not None and ahead[1] else _build(kind, spec, args, once,
+                                                                     static, key)
     _COMPILED[key] = exe
     return exe, time.perf_counter() - t0
 

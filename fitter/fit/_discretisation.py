@@ -43,6 +43,7 @@ from ..material import EXPOSURE_KEY, Material
 from ..render import render_active
 from . import _adequacy
 from ._cache import compile_cached
+from ._problem import user_values
 
 #: The finer model's sub-pixel samples per axis: 2k, at most this.
 MAX_SUPERSAMPLING = 16
@@ -99,24 +100,43 @@ _EXECUTABLES: dict = {}
 _KEEP_EXECUTABLES = 8
 
 
+def _render_args(params, geo, env, sphere):
+    """``_render``'s arguments on the device and its executable's key's shapes."""
+    args = jax.tree_util.tree_map(_to_device, (params, geo, env, sphere))
+    return args, jax.tree_util.tree_map(lambda a: (a.shape, str(a.dtype)), args)
+
+
+def _render_key(material, env_type, shapes) -> str:
+    return repr(("discretisation_render", material, env_type, str(shapes)))
+
+
+def _compile_render(args, material, env_type, key):
+    def active(p, g, e, s):
+        return render_active(p, g, e, s, material=material, env_type=env_type)
+
+    return compile_cached(active, args, key, FAST_COMPILE)
+
+
+def _keep_executable(key, exe) -> None:
+    _EXECUTABLES.pop(key, None)
+    _EXECUTABLES[key] = exe
+    while len(_EXECUTABLES) > _KEEP_EXECUTABLES:
+        _EXECUTABLES.pop(next(iter(_EXECUTABLES)))
+
+
 def _render(params, geo, env, sphere, material, env_type) -> np.ndarray:
     """``render_active`` (P, 3) as float64 NumPy, through one executable per
     structure and shapes whose trace the fit's persistent cache keeps
     (``_cache.compile_cached``): a repeated ``fitter fit`` loads it instead of
-    tracing the renderer (0.1 s). Host arrays go to the device as float64
-    (``to_device``: no copy kernel per shape); device arrays as they are."""
-    args = jax.tree_util.tree_map(_to_device, (params, geo, env, sphere))
-    shapes = jax.tree_util.tree_map(lambda a: (a.shape, str(a.dtype)), args)
-    key = repr(("discretisation_render", material, env_type, str(shapes)))
-    exe = _EXECUTABLES.pop(key, None)
+    tracing the renderer (0.1 s); ``prefetch`` may have compiled it ahead. Host
+    arrays go to the device as float64 (``to_device``: no copy kernel per
+    shape); device arrays as they are."""
+    args, shapes = _render_args(params, geo, env, sphere)
+    key = _render_key(material, env_type, shapes)
+    exe = _EXECUTABLES.get(key)
     if exe is None:
-        def active(p, g, e, s):
-            return render_active(p, g, e, s, material=material, env_type=env_type)
-
-        exe = compile_cached(active, args, key, FAST_COMPILE)
-    _EXECUTABLES[key] = exe
-    while len(_EXECUTABLES) > _KEEP_EXECUTABLES:
-        _EXECUTABLES.pop(next(iter(_EXECUTABLES)))
+        exe = _compile_render(args, material, env_type, key)
+    _keep_executable(key, exe)
     return np.asarray(exe(*args), dtype=np.float64)
 
 
@@ -145,7 +165,8 @@ def sample_rows(labels) -> tuple[np.ndarray, np.ndarray]:
 #: (pixels x k'^2; 2932 x 64 at the quickstart's 128^2): it is held beside the
 #: solve's own memory.
 PREFETCH_SAMPLES = 2**19
-#: The finer geometry being made ahead: {key: (thread, [geometry or None])}, one.
+#: The finer geometries being made ahead (one fit's): {key: (thread, [prepared
+#: geometry or None, (executable key, executable) or None])}.
 _AHEAD: dict = {}
 
 
@@ -156,41 +177,94 @@ def _geometry_key(scene, base_dir, env_type, sun_cells, flat) -> tuple:
     return scene, base_dir, env_type, sun_cells, np.asarray(flat, np.int64).tobytes()
 
 
-def prefetch(problem) -> None:
-    """Start making the finer model's geometry of the sampled fitted pixels
-    (``finer_values``) on a thread, while the solver runs.
+def _sphere(scene):
+    return (np.asarray(scene.sphere.center, np.float64),
+            np.asarray(scene.sphere.radius, np.float64))
 
-    It depends on the scene and the fitted pixels only, not on the fit, and is
-    NumPy (0.1 s at the quickstart's 128^2, 8 x 8 samples), which runs beside
-    XLA's execution of the solve and the profile. Scenes with an environment
-    map or environment-lit opaque lobes are made where they are needed.
+
+def _host_params(params) -> dict:
+    return {k: np.asarray(v, np.float64) for k, v in params.items()}
+
+
+def prefetch(problem) -> None:
+    """Start making the finer model's geometries of the sampled fitted pixels
+    (``finer_values``) on a thread, while the solver runs, and compiling the
+    executables that render them (``_render``).
+
+    They depend on the scene, the fitted pixels and the parameters' shapes
+    only, not on the fit. The geometries are NumPy (0.1 s at the quickstart's
+    128^2, 8 x 8 samples; env_plastic's two with sun cells 1.9 s), which runs
+    beside XLA's execution of the solve and the profile; XLA's compile (0.5 s
+    for the dielectric at 128^2) releases the interpreter too. Whatever fails
+    on the thread is done again where needed (``_geometry``, ``_render``);
+    ``wait`` joins it.
     """
     r = problem.renderer
     scene = r.scene
-    if scene.environment.type == "envmap" or envlight.lit_by_environment(scene, r.material):
-        return
     rows, _ = sample_rows(_adequacy.pixel_regions(problem.geometry))
     flat = np.asarray(r.pixel_index)[problem.rows][rows]
     fine = scene.replace(supersampling=finer_supersampling(scene))
-    if flat.size * fine.supersampling**2 > PREFETCH_SAMPLES:
+    lit = envlight.lit_by_environment(scene, r.material)
+    sun = (envlight.SUN_CELL, envlight.SUN_SUB)
+    # (scene, sun cells or None, material) of each geometry ``finer_values`` makes
+    jobs = [(fine, sun if lit else None, finer_material(r.material))]
+    if lit:
+        jobs.append((scene, FINER_SUN, r.material))
+    if flat.size * sum(s.supersampling**2 for s, _, _ in jobs) > PREFETCH_SAMPLES:
         return
     base = problem.base_dir
-    key = _geometry_key(fine, base, r.env_type, False, flat)
-    if key in _GEOMETRIES:  # a refit: kept
+    keys = [_geometry_key(s, base, r.env_type, cells or False, flat) for s, cells, _ in jobs]
+    if keys[0] in _GEOMETRIES:  # a refit: kept
         return
     env64 = load_environment(scene.environment, base)
-    box: list = [None]
+    free = {blk.key for blk in problem.blocks}
+    # The complete parameters' shapes (``finer_values`` renders the fit's values).
+    params = _host_params(user_values(problem.spec, problem.z_init(), {
+        k: v for k, v in problem.init_full.items() if k not in free}))
+    boxes: list = [[None, None] for _ in jobs]
 
     def make():
         try:
-            box[0] = build_geometry(fine, r.env_type, env64, None, pixels=flat)
+            for (s, cells, material), box in zip(jobs, boxes):
+                lighting = _sun_only(scene, env64, cells) if cells else None
+                if cells == FINER_SUN and (lighting is None or not lighting.sun_dir.shape[0]):
+                    break  # no sun: ``finer_values`` renders no finer sun
+                box[0] = _prepared(build_geometry(s, r.env_type, env64, lighting, pixels=flat),
+                                   flat)
+                args, shapes = _render_args(params, box[0][0], env64, _sphere(scene))
+                exe_key = _render_key(material, r.env_type, shapes)
+                box[1] = exe_key, _compile_render(args, material, r.env_type, exe_key)
         except Exception:  # noqa: BLE001 (made again, and any error raised, where needed)
             pass
 
     thread = threading.Thread(target=make, name="fitter-finer-geometry", daemon=True)
+    wait()  # an earlier fit's, unused
     _AHEAD.clear()
-    _AHEAD[key] = (thread, box)
+    _AHEAD.update({key: (thread, box) for key, box in zip(keys, boxes)})
     thread.start()
+
+
+def wait() -> None:
+    """Join the thread ``prefetch`` started, if any (its work stays for the fit
+    it was made for): no thread outlives a fit."""
+    for thread, _ in list(_AHEAD.values()):
+        thread.join()
+
+
+def _prepared(geo, flat):
+    """(geometry of the pixels ``flat`` found, on the device; found (P,) bool;
+    coverage (P,)) of ``geo``, made for the pixels ``flat``."""
+    index = np.asarray(geo.pixel_index)
+    at = np.minimum(np.searchsorted(index, flat), max(index.size - 1, 0))
+    found = index[at] == flat if index.size else np.zeros(flat.size, bool)
+    rows = at[found]
+    # Usually every pixel asked for is active, in order: no copy of the sun's (L, Q) arrays.
+    sub = geo if np.array_equal(rows, np.arange(index.size)) else geo.subset(rows)
+    coverage = np.zeros(flat.size)
+    coverage[found] = np.asarray(sub.hit, dtype=np.float64) @ np.asarray(sub.sample_weight)
+    sub = jax.tree_util.tree_map(_to_device, sub._replace(pixel_index=None,
+                                                          background_image=None))
+    return sub, found, coverage
 
 
 #: The finer geometries of the last ``finer_values`` calls (on the device), kept
@@ -206,25 +280,17 @@ _KEEP_BYTES = 2**29
 def _geometry(scene, env64, lighting, flat, env_type, key):
     """(geometry of the pixels ``flat`` found, on the device; found (P,) bool;
     coverage (P,)): the one kept under ``key`` (``_geometry_key``), else the one
-    ``prefetch`` made, else made here; then kept."""
+    ``prefetch`` made (with its render executable), else made here; then kept."""
     if key in _GEOMETRIES:
         return _GEOMETRIES[key]
     ahead = _AHEAD.pop(key, None)
     if ahead is not None:
         ahead[0].join()
-    geo = ahead[1][0] if ahead is not None and ahead[1][0] is not None else \
-        build_geometry(scene, env_type, env64, lighting, pixels=flat)
-    index = np.asarray(geo.pixel_index)
-    at = np.minimum(np.searchsorted(index, flat), max(index.size - 1, 0))
-    found = index[at] == flat if index.size else np.zeros(flat.size, bool)
-    rows = at[found]
-    # Usually every pixel asked for is active, in order: no copy of the sun's (L, Q) arrays.
-    sub = geo if np.array_equal(rows, np.arange(index.size)) else geo.subset(rows)
-    coverage = np.zeros(flat.size)
-    coverage[found] = np.asarray(sub.hit, dtype=np.float64) @ np.asarray(sub.sample_weight)
-    sub = jax.tree_util.tree_map(_to_device, sub._replace(pixel_index=None,
-                                                          background_image=None))
-    out = _GEOMETRIES[key] = sub, found, coverage
+        if ahead[1][1] is not None and ahead[1][1][0] not in _EXECUTABLES:
+            _keep_executable(*ahead[1][1])
+    out = _GEOMETRIES[key] = (ahead[1][0] if ahead is not None and ahead[1][0] is not None
+                              else _prepared(build_geometry(scene, env_type, env64, lighting,
+                                                            pixels=flat), flat))
     size = lambda g: sum(a.nbytes for a in jax.tree_util.tree_leaves(g[0]))  # noqa: E731
     while _GEOMETRIES and (len(_GEOMETRIES) > _KEEP_GEOMETRIES or
                            sum(size(g) for g in _GEOMETRIES.values()) > _KEEP_BYTES):
@@ -237,11 +303,8 @@ def _values(scene, material, env64, lighting, flat, params, env_type, key):
     ``scene`` lit by its lights and ``lighting`` (``geometry.build_geometry``);
     ``key``: that geometry's ``_geometry_key``."""
     sub, found, coverage = _geometry(scene, env64, lighting, flat, env_type, key)
-    sphere = (np.asarray(scene.sphere.center, np.float64),
-              np.asarray(scene.sphere.radius, np.float64))
     vals = np.zeros((flat.size, 3))
-    vals[found] = _render({k: np.asarray(v, np.float64) for k, v in params.items()},
-                          sub, env64, sphere, material, env_type)
+    vals[found] = _render(_host_params(params), sub, env64, _sphere(scene), material, env_type)
     return vals, coverage
 
 

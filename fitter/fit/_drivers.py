@@ -9,6 +9,8 @@ check identifiability at the solution, hold and refit -> verdict.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import threading
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -19,8 +21,9 @@ import numpy as np
 
 from ..limits import check_fit
 from ..scene import Scene
-from . import _args, _coarse, _discretisation
-from ._compile import best_start, compiled, jac_res, r_factor, remember_jacobian
+from . import _args, _coarse, _compile, _discretisation
+from ._compile import (best_start, compile_ahead, compiled, jac_res, r_factor,
+                       remember_jacobian)
 from ._covariance import residual_variance
 from ._identify import (WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction,
                         weak_profile)
@@ -40,6 +43,53 @@ START_CHECK_STRIDE = 8
 AUTO_STARTS = 4
 
 
+#: Threads importing the solver library (``_import_ahead``).
+_IMPORTS: list = []
+
+
+def _import_ahead() -> None:
+    """Import optimistix (0.3 s, which tracing the solve needs) on a thread,
+    beside the set-up's NumPy and the start search's XLA compile; not when the
+    traces may come from disk (``_cache``), which run without it."""
+    import sys
+
+    if "optimistix" in sys.modules or jax.config.jax_compilation_cache_dir:
+        return
+
+    def load():
+        try:
+            import optimistix  # noqa: F401
+        except Exception:  # noqa: BLE001 (imported again, and any error raised, where needed)
+            pass
+
+    _IMPORTS.append(threading.Thread(target=load, name="fitter-import", daemon=True))
+    _IMPORTS[-1].start()
+
+
+def _settled(f):
+    """``f`` that leaves no thread of its own running (``_import_ahead``,
+    ``compile_ahead``, ``_discretisation.prefetch``) when it returns or raises
+    an error (an interrupt is not held up for them)."""
+    def settle():
+        while _IMPORTS:
+            _IMPORTS.pop().join()
+        _compile.wait()
+        _discretisation.wait()
+
+    @functools.wraps(f)
+    def g(*args, **kwargs):
+        try:
+            out = f(*args, **kwargs)
+        except Exception:
+            settle()
+            raise
+        settle()
+        return out
+
+    return g
+
+
+@_settled
 def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None,
         fixed: Mapping[str, Any] | None = None, bounds: Mapping[str, tuple] | None = None,
         solver: str = "levenberg_marquardt", mask="interior", exclude=None, weights=None,
@@ -93,6 +143,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
             ``fitter.limits``: starts, supersampling, memory).
     """
     t_start = time.perf_counter()
+    _import_ahead()
     scene = _args.scene_of(scene)
     n_starts = _args.option("n_starts", n_starts)
     identifiability = _args.option("identifiability", identifiability)
@@ -114,6 +165,9 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                               n_starts=n_starts)
     t_compile = 0.0
     if identifiability:
+        if not coarse:  # the solve traced, compiled beside the check (unless that holds one)
+            compile_ahead("solve", problem.spec, (problem.cast(problem.z_init()[None]),
+                                                  problem.data(0)), **problem.static)
         say("checking which parameters the pixels depend on")
         problem, t_compile = _hold_dead_columns(problem, coarse)
         if not problem.blocks:

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._math import to_device
 from ..bsdf.base import SurfaceHit
 from ..environment import lookup
 from ..material import Material, lobe_params
@@ -66,7 +67,8 @@ def searched(problem):
     rows = np.arange(0, n, max(1, n // SEARCH_PIXELS))
     k = int(np.argmax(np.asarray(geo.sample_weight)))
     # In float64 whatever the fit's dtype: the search only ranks candidates.
-    f64 = lambda a: jnp.asarray(np.asarray(a, dtype=np.float64))  # noqa: E731
+    # (to_device: jnp.asarray compiled a copy kernel per argument's shape, 9 per first run)
+    f64 = lambda a: to_device(a, np.float64)  # noqa: E731
     pick = lambda a: f64(np.asarray(a)[rows, k:k + 1])  # noqa: E731
     sample_weight = np.asarray(geo.hit)[rows, k:k + 1].astype(np.float64)
     p = lobe_params(problem.init_full, lobe.name)
