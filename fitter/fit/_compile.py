@@ -242,9 +242,9 @@ def compile_ahead(kind: str, spec: Spec, args, once: bool = False, **static) -> 
 
 def wait() -> None:
     """Join every ``compile_ahead`` thread; keep what they compiled for later fits."""
-    while _PENDING:
-        key, (thread, box) = _PENDING.popitem()
+    for key, (thread, box) in list(_PENDING.items()):  # (or fits on other threads)
         thread.join()
+        _PENDING.pop(key, None)
         if box:
             _COMPILED.setdefault(key, box[0])
 

@@ -8,6 +8,7 @@ check identifiability at the solution, hold and refit -> verdict.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import threading
@@ -71,8 +72,10 @@ def _settled(f):
     ``compile_ahead``, ``_discretisation.prefetch``) when it returns or raises
     an error (an interrupt is not held up for them)."""
     def settle():
-        while _IMPORTS:
-            _IMPORTS.pop().join()
+        for thread in list(_IMPORTS):  # (fits on other threads may settle them too)
+            thread.join()
+            with contextlib.suppress(ValueError):
+                _IMPORTS.remove(thread)
         _compile.wait()
         _discretisation.wait()
 
