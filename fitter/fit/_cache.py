@@ -52,47 +52,37 @@ def compile_cached(f, args, key: str, options: dict | None = None):
     one run pays for tracing again; if that fails too, the fit traces as if
     there were no cache.
     """
-    folder = jax.config.jax_compilation_cache_dir
-    if not folder:
-        return jax.jit(f).lower(*args).compile(options)
-    digest = hashlib.sha256((key + _source_fingerprint()).encode()).hexdigest()[:32]
-    path = os.path.join(folder, f"fitter-{digest}.jaxexport")
-    try:
-        with open(path, "rb") as fh:
-            exported = export.deserialize(bytearray(fh.read()))
-        return jax.jit(exported.call).lower(*args).compile(options)
-    except Exception:  # noqa: BLE001 (missing, stale or unreadable: export anew below)
-        pass
-    try:
-        exported = export.export(jax.jit(f))(*args)
-        _store(folder, path, exported.serialize())
-        return jax.jit(exported.call).lower(*args).compile(options)
-    except Exception:  # noqa: BLE001 (a cache problem must never break a fit)
-        return jax.jit(f).lower(*args).compile(options)
+    return _cached(f, args, key, lambda lowered: lowered.compile(options))
 
 
 def lower_cached(f, args, key: str):
-    """``jax.jit(f).lower(*args)``, from an exported trace on disk if there is one
-    (as ``compile_cached``, which also compiles; a trace found here that does not
-    compile is left to it). Tracing holds the interpreter and XLA's compile does
-    not: a caller may trace here and compile the result on a thread."""
+    """``jax.jit(f).lower(*args)``, from an exported trace on disk as in
+    ``compile_cached`` (a trace that lowers but does not compile is left to it).
+    Tracing holds the interpreter and XLA's compile does not: a caller may trace
+    here and compile the result on a thread."""
+    return _cached(f, args, key, lambda lowered: lowered)
+
+
+def _cached(f, args, key: str, finish):
+    """``finish(jax.jit(g).lower(*args))`` with g the exported trace on disk, else a
+    fresh export (stored), else ``f`` itself."""
     folder = jax.config.jax_compilation_cache_dir
     if not folder:
-        return jax.jit(f).lower(*args)
+        return finish(jax.jit(f).lower(*args))
     digest = hashlib.sha256((key + _source_fingerprint()).encode()).hexdigest()[:32]
     path = os.path.join(folder, f"fitter-{digest}.jaxexport")
     try:
         with open(path, "rb") as fh:
             exported = export.deserialize(bytearray(fh.read()))
-        return jax.jit(exported.call).lower(*args)
+        return finish(jax.jit(exported.call).lower(*args))
     except Exception:  # noqa: BLE001 (missing, stale or unreadable: export anew below)
         pass
     try:
         exported = export.export(jax.jit(f))(*args)
         _store(folder, path, exported.serialize())
-        return jax.jit(exported.call).lower(*args)
+        return finish(jax.jit(exported.call).lower(*args))
     except Exception:  # noqa: BLE001 (a cache problem must never break a fit)
-        return jax.jit(f).lower(*args)
+        return finish(jax.jit(f).lower(*args))
 
 
 def _store(folder: str, path: str, data: bytes) -> None:
