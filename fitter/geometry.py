@@ -20,10 +20,13 @@ from .bsdf.base import Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
 from .compilation_cache import FAST_COMPILE
 from .environment import EnvData, lookup
-from .envlight import LUMINANCE
+from .envlight import LUMINANCE, sky_sum
 from .scene import DirectionalLight, PointLight, Scene
 
 _LOOKUP = jax.jit(lookup, static_argnums=0, compiler_options=FAST_COMPILE)
+#: The sky irradiance's sum as one executable: op by op, its dozen ops were compiled
+#: one by one on every first run (~0.5 s).
+_SKY_SUM = jax.jit(sky_sum)
 
 
 class Geometry(NamedTuple):
@@ -311,7 +314,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, _STAND_IN)))
     light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
     if lighting is not None:
-        from .envlight import node_geometry, sky_sum, sky_table
+        from .envlight import node_geometry, sky_table
 
         rows, e_n, e_v, e_w = env_samples(scene, hit, t_a, o_a, d_a, weight, pixel_index)
         ok = np.sum(e_n * e_v, -1) > 0
@@ -322,8 +325,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
             order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
             rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
             e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
-            # one executable: op by op, its dozen ops compiled one by one (~0.5 s)
-            irr = np.asarray(jax.jit(sky_sum)(jnp.asarray(e_nw.sum(-1)), node, frac, e_c))
+            irr = np.asarray(_SKY_SUM(jnp.asarray(e_nw.sum(-1)), node, frac, e_c))
             e_irr = np.zeros((pixel_index.size, 3))
             np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])
     if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)
