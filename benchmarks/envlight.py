@@ -104,7 +104,8 @@ def _reference(scene, m, p, spp, seed, tag):
     return img
 
 
-def _ms(fn, *args, repeat=3):
+def best_ms(fn, *args, repeat=3):
+    """Least wall time (ms) of ``jax.jit(fn)(*args)`` over ``repeat`` calls, compiled first."""
     fj = jax.jit(fn)
     jax.block_until_ready(fj(*args))
     best = np.inf
@@ -127,7 +128,7 @@ def step_times(r, params, free):
         sub = {k: p[k] for k in free}
         return jax.jacfwd(lambda s: f({**p, **s}, geo))(sub)
 
-    return _ms(f, p, r.geometry), _ms(jac, p, r.geometry)
+    return best_ms(f, p, r.geometry), best_ms(jac, p, r.geometry)
 
 
 def accuracy(a):

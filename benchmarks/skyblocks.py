@@ -19,15 +19,14 @@ import argparse
 import importlib
 import os
 import sys
-import time
 
 import numpy as np
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir)
 sys.path.insert(0, ROOT)
 
-import jax
 import jax.numpy as jnp
+from envlight import best_ms  # the sibling benchmark's timer
 
 from fitter import serialize, skystencil
 from fitter.cases import CASES
@@ -49,16 +48,6 @@ def _nodes(case):
     return node[real], (at - node)[real], geo.env_cosines.cos_i.shape
 
 
-def _ms(fn, *args, repeat=4):
-    jax.block_until_ready(fn(*args))
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - t0)
-    return 1e3 * best
-
-
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--case", default="env_plastic")
@@ -69,7 +58,6 @@ def main():
     rng = np.random.default_rng(0)
     cols = (1, 3, 6)
     hs = {k: jnp.asarray(rng.random((k, t, n))) for k in cols}
-    fn = jax.jit(skystencil.sky_sum)
     setups = {}
     for lay in a.layouts.split(","):
         b, s = (int(x) for x in lay.split("x"))
@@ -80,7 +68,8 @@ def main():
     for _ in range(a.rounds):  # interleaved: every layout sees the same load
         for lay, (win, pos, c, _) in setups.items():
             for k in cols:
-                best[lay, k] = min(best.get((lay, k), np.inf), _ms(fn, hs[k], win, pos, c))
+                ms = best_ms(skystencil.sky_sum, hs[k], win, pos, c, repeat=4)
+                best[lay, k] = min(best.get((lay, k), np.inf), ms)
     ref = next(iter(setups))
     print(f"{node.size} env samples, {t} nodes, {n} cells ({a.case})")
     print("| B x S | padding rows | " + " | ".join(f"{k} col ms" for k in cols)
