@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..hugepages import advice_off
 from ..limits import check_fit
 from ..scene import Scene
 from . import _args, _coarse, _compile, _discretisation
@@ -92,6 +93,7 @@ def _settled(f):
     return g
 
 
+@advice_off
 @_settled
 def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None,
         fixed: Mapping[str, Any] | None = None, bounds: Mapping[str, tuple] | None = None,
@@ -259,6 +261,7 @@ def solve_starts(problem: Problem, z0s, data, say=_quiet, what: str = ""):
     return zs, codes, steps, costs, best, outs[best][5], t_compile
 
 
+@advice_off
 def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
               identifiability: bool = True, **kwargs) -> list[FitResult]:
     """Fit many targets of one scene and material in one compiled solve.
