@@ -86,3 +86,19 @@ def test_fit_entry_points_run_with_the_advice_off(monkeypatch, entry):
     with pytest.raises(_Stop):
         getattr(_drivers, entry)(target, scene, "lambert")
     assert seen == [False] and advice() is True
+
+
+def test_a_scene_is_prepared_with_the_advice_off(monkeypatch):
+    from fitter import render
+
+    seen = []
+    real = render.build_geometry
+
+    def probe(*args, **kwargs):
+        seen.append(advice())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(render, "build_geometry", probe)
+    scene = serialize.scene_from_dict(CASES["plastic"]["scene"], "plastic")
+    render._prepare.__wrapped__(scene.replace(width=9, height=7), np.dtype(np.float64), None)
+    assert seen == [False] and advice() is True
