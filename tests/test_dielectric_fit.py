@@ -171,3 +171,51 @@ def test_fewer_bounces_keep_a_free_exposure():
     cheaper = cheapened(problem).material
     assert cheaper.options_of("dielectric")["bounces"] < 8
     assert cheaper.exposure
+
+
+def _searched_problem(scene, truth):
+    from fitter.fit._search import searched
+
+    target = np.asarray(fitter.render(truth, scene))
+    return searched(Problem.make(target[None], scene, "dielectric")), target
+
+
+def test_the_start_search_spares_the_start_check_for_what_it_saw_change(monkeypatch):
+    """Under the envmap every parameter changes the search's cost: the start
+    check (a Jacobian at the start) is not made, and the fit is the one the
+    check would have given."""
+    from fitter.fit import _drivers, _search
+
+    truth = {"dielectric.eta": 1.5, "dielectric.attenuation": ATT}
+    problem, target = _searched_problem(SCENE, truth)
+    assert problem.alive == {"dielectric.eta", "dielectric.attenuation"}
+
+    def no_jacobian(*args, **kwargs):
+        raise AssertionError("the start check made a Jacobian")
+
+    with monkeypatch.context() as m:
+        m.setattr(_drivers, "jac_res", no_jacobian)
+        assert _drivers._hold_dead_columns(problem) == (problem, 0.0)
+        skipped = fitter.fit(target, SCENE, "dielectric")
+    monkeypatch.setattr(_search, "SEEN_CHANGE", np.inf)  # nothing seen: the check runs
+    checked = fitter.fit(target, SCENE, "dielectric")
+    for key, value in checked.params.items():
+        np.testing.assert_array_equal(skipped.params[key], value)
+        np.testing.assert_array_equal(skipped.stderr[key], checked.stderr[key])
+
+
+def test_a_channel_the_pixels_do_not_see_is_still_checked_and_held():
+    """A constant environment without blue: the blue attenuation changes no
+    pixel, so the search's spread for it is 0, the start check runs and holds
+    the attenuation (a block is held whole), as it did before the search
+    spared anything."""
+    from fitter.fit import _drivers
+
+    scene = fitter.Scene(width=48, height=48, supersampling=2,
+                         environment=fitter.Environment("constant", radiance=(1.0, 0.5, 0.0)))
+    truth = {"dielectric.eta": 1.5, "dielectric.attenuation": ATT}
+    problem, _ = _searched_problem(scene, truth)
+    assert problem.alive == {"dielectric.eta"}
+    held, _ = _drivers._hold_dead_columns(problem)
+    assert [b.key for b in held.blocks] == ["dielectric.eta"]
+    assert held.unidentifiable == ("dielectric.attenuation",)

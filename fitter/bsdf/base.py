@@ -237,8 +237,11 @@ class StartSearch(NamedTuple):
     ``rounds(p, free, box)``: one function per round, (best point so far) ->
     a grid, ``p`` with arrays of candidates (the start is the first round's
     best; ``free`` names the free parameters, ``box`` maps them to (lower,
-    upper)). ``best(grid, opts, hit, env, cost) -> p``: the point of the grid
-    with the lowest ``cost(model (..., 3)) -> (3,)`` (per channel).
+    upper)). ``best(grid, opts, hit, env, cost) -> (p, spread)``: the point of
+    the grid with the lowest ``cost(model (..., 3)) -> (3,)`` (per channel),
+    and per parameter (an array of its shape) the largest relative change of
+    the cost along it over the grid (0 where the pixels do not depend on it;
+    the start check skips a parameter the search saw change the cost).
     """
 
     rounds: Callable

@@ -182,14 +182,22 @@ def _search(p, opts, hit, env, cost):
 
     ``cost(model (..., 3)) -> (3,)`` per channel; the channels of the
     attenuation are independent given eta, so each takes its best candidate.
-    Returns the best {eta, attenuation}.
+    Returns the best {eta, attenuation} and the cost's largest relative
+    change along eta (at some attenuation row) and along each channel's
+    attenuation (at some eta): ``StartSearch``'s spread.
     """
     atts = p["attenuation"]
     costs = jax.lax.map(lambda e: jax.vmap(cost)(_models(e, atts, opts, hit, env)),
                         p["eta"])  # (G, A, 3)
     per_eta = jnp.sum(jnp.min(costs, axis=1), axis=-1)  # each channel's best attenuation
     i = jnp.argmin(per_eta)
-    return {"eta": p["eta"][i], "attenuation": atts[jnp.argmin(costs[i], axis=0), jnp.arange(3)]}
+    best = {"eta": p["eta"][i], "attenuation": atts[jnp.argmin(costs[i], axis=0), jnp.arange(3)]}
+    total = jnp.sum(costs, axis=-1)  # (G, A)
+    tiny = jnp.finfo(costs.dtype).tiny
+    spread = {"eta": jnp.max(jnp.ptp(total, axis=0)) / jnp.maximum(jnp.max(total), tiny),
+              "attenuation": jnp.max(jnp.ptp(costs, axis=1), axis=0)
+              / jnp.maximum(jnp.max(costs, axis=(0, 1)), tiny)}
+    return best, spread
 
 
 def _grid(lo, hi, n, fixed):

@@ -328,6 +328,8 @@ def _hold_dead_columns(problem: Problem, coarse: bool = False) -> tuple[Problem,
 
     Returns the problem without them and the seconds spent compiling. The
     Jacobian does not depend on the target, so one check serves a batch.
+    Parameters the start search saw change the cost (``problem.alive``) need
+    no check; where every free one did, no Jacobian is made.
     ``coarse``: the fit will start coarse (``_coarse``), whose full-size
     Gauss-Newton step has the Jacobian's R factor on all pixels: the check uses
     that executable (one compile fewer) instead of its own.
@@ -340,6 +342,8 @@ def _hold_dead_columns(problem: Problem, coarse: bool = False) -> tuple[Problem,
         J0 = r_factor(step(*args)[0])
         dead = blocks_of(problem.spec, dead_columns(problem.spec, z0, J0))
         return problem.held(dead, [_dead_reason(problem, k) for k in dead]), t_compile
+    if all(b.key in problem.alive for b in problem.blocks):
+        return problem, 0.0  # the start search saw each change the cost (``_search``)
     # A column alive on a strided subset of the pixels is alive (the common
     # case, at 1/8 of the cost); one that looks dead there is checked on all.
     stride = START_CHECK_STRIDE if problem.rows.size >= START_CHECK_STRIDE * 512 else 1

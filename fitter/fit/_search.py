@@ -33,6 +33,12 @@ SEARCH_PIXELS = 2048
 #: level (the given noise_sigma, else the level estimated from the target; that
 #: estimate also counts fine image structure, so it is an upper bound).
 TRUNCATION_NOISE_FRACTION = 0.1
+#: A parameter along which the search's cost changed by more than this
+#: (relative) is one the pixels depend on: the start check (``_drivers``,
+#: a Jacobian at the start, 0.9 s of a dielectric's first run to trace and
+#: compile) skips it. Conservative: that check calls a column dead only below
+#: 1e-9 of the largest (``_identify.ZERO_COLUMN``).
+SEEN_CHANGE = 1e-6
 
 
 @functools.lru_cache(maxsize=8)
@@ -54,7 +60,8 @@ def _searcher(lobe, opts_items, env_type):
 
 def searched(problem):
     """``problem`` with its start (``init_full``) moved to the search's best
-    point; unchanged if its material is not one lobe with a search."""
+    point, and the parameters the search saw change the cost added to its
+    ``alive``; unchanged if its material is not one lobe with a search."""
     material = problem.material
     lobe = material.lobe_objects[0]
     if len(material.lobes) != 1 or lobe.start_search is None:
@@ -79,14 +86,17 @@ def searched(problem):
             f64(sphere[1]), f64(sample_weight), jax.tree_util.tree_map(f64, problem.renderer.env),
             f64(problem.targets[0][rows] - np.asarray(geo.background)[rows]),
             f64(problem.weights[0][rows]))
-    best = p
+    best, seen = p, {name: 0.0 for name in free}
     for grid in lobe.start_search.rounds(p, tuple(free), free):
-        best = {k_: np.asarray(v, dtype=np.float64) for k_, v in
-                run({k_: f64(v) for k_, v in grid(best).items()}, *args).items()}
+        found, spread = run({k_: f64(v) for k_, v in grid(best).items()}, *args)
+        best = {k_: np.asarray(v, dtype=np.float64) for k_, v in found.items()}
+        seen = {name: np.maximum(seen[name], np.asarray(spread[name])) for name in free}
     init = dict(problem.init_full)
     for name in free:
         init[f"{lobe.name}.{name}"] = best[name]
-    return dataclasses.replace(problem, init_full=init)
+    alive = frozenset(f"{lobe.name}.{name}" for name in free
+                      if np.all(seen[name] > SEEN_CHANGE))
+    return dataclasses.replace(problem, init_full=init, alive=problem.alive | alive)
 
 
 def cheapened(problem):

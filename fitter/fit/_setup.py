@@ -202,6 +202,7 @@ class Problem:
     unidentifiable: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
     base_dir: str | None = None  # a relative envmap path is resolved against it
+    alive: frozenset = frozenset()  # keys the start search saw change the cost (``_search``)
 
     @classmethod
     def make(cls, targets, scene, material, *, init=None, fixed=None, bounds=None,
