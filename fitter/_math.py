@@ -67,3 +67,42 @@ def normalize(v):
 def reflect(d, n):
     """Mirror the direction ``d`` (either orientation) about the unit normal ``n``."""
     return d - 2.0 * dot(d, n)[..., None] * n
+
+
+#: Cephes ``atan``'s rational approximation P(z) / Q(z), z = x^2, |x| <= 0.66.
+_ATAN_P = (-8.750608600031904122785e-1, -1.615753718733365076637e1,
+           -7.500855792314704667340e1, -1.228866684490136173410e2,
+           -6.485021904942025371773e1)
+_ATAN_Q = (2.485846490142306297962e1, 1.650270098316988542046e2,
+           4.328810604912902668951e2, 4.853903996359136964868e2,
+           1.945506571482613964425e2)
+
+
+def atan2(y, x):
+    """The angle of (x, y) in [-pi, pi], as ``jnp.arctan2`` (signed zeros too),
+    within 2 ulp in float64 and float32.
+
+    XLA's CPU backend calls libm's scalar atan2 per element: that was 15 % of a
+    compiled dielectric fit's time (its envmap lookups) and a third of an
+    environment's sky tabulation. These selects and one rational function
+    vectorise: 3x (float64) and 8x (float32) faster on 4 M elements. The
+    octant is reduced to t = min / max in [0, 1], then to |s| <= 0.66 by
+    atan t = pi/4 + atan((t - 1) / (t + 1)) (S. L. Moshier, Cephes ``atan.c``;
+    *Methods and Programs for Mathematical Functions*, 1989). Not for
+    gradients through (x, y) = (0, 0).
+    """
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    swap = ay > ax
+    num, den = jnp.where(swap, ax, ay), jnp.where(swap, ay, ax)
+    t = num / jnp.where(den > 0, den, 1.0)
+    big = t > 0.66
+    s = jnp.where(big, (t - 1.0) / (t + 1.0), t)
+    z = s * s
+    p, q = _ATAN_P[0], z + _ATAN_Q[0]
+    for a, b in zip(_ATAN_P[1:], _ATAN_Q[1:]):
+        p, q = p * z + a, q * z + b
+    angle = s + s * z * p / q
+    angle = jnp.where(big, angle + np.pi / 4, angle)
+    angle = jnp.where(swap, np.pi / 2 - angle, angle)
+    angle = jnp.where(jnp.signbit(x), np.pi - angle, angle)
+    return jnp.copysign(angle, y)
