@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._math import atan2, safe_sqrt, to_device
+from ._math import safe_sqrt, to_device
 from .scene import Environment, resolve_path
 
 
@@ -49,10 +49,10 @@ def _uv_and_polar(v):
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     r2 = x * x + z * z
     off_pole = r2 > 0  # at the poles u is arbitrary; atan2(0, 0) has a NaN gradient
-    u = atan2(jnp.where(off_pole, x, 0.0), jnp.where(off_pole, -z, 1.0)) / (2.0 * jnp.pi)
+    u = jnp.arctan2(jnp.where(off_pole, x, 0.0), jnp.where(off_pole, -z, 1.0)) / (2.0 * jnp.pi)
     u = u - jnp.floor(u)
     rho = safe_sqrt(r2)
-    return u, atan2(rho, y) / jnp.pi, off_pole, rho
+    return u, jnp.arctan2(rho, y) / jnp.pi, off_pole, rho
 
 
 def direction_to_uv(v):

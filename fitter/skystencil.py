@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._math import atan2, to_device
+from ._math import to_device
 
 #: Ring edges (radians from the mirror direction) of the sky stencil.
 #: Below 0.3 rad twice as many rings as the first version (midpoints added): a midpoint
@@ -327,9 +327,9 @@ def _table_fn():
         cl = cen_tab[i0] * (1 - f[..., None]) + cen_tab[i0 + 1] * f[..., None]
         d = cl[..., :1] * t[:, None] + cl[..., 1:2] * b[:, None] + cl[..., 2:] * r[:, None]
         d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-        u = atan2(d[..., 0], -d[..., 2]) / (2.0 * jnp.pi)
+        u = jnp.arctan2(d[..., 0], -d[..., 2]) / (2.0 * jnp.pi)
         u = u - jnp.floor(u)
-        v = atan2(jnp.hypot(d[..., 0], d[..., 2]), d[..., 1]) / jnp.pi
+        v = jnp.arctan2(jnp.hypot(d[..., 0], d[..., 2]), d[..., 1]) / jnp.pi
         rad = (bil(flat, lh[lo], lw[lo], loff[lo], u, v) * (1 - fl)[:, None]
                + bil(flat, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
         lit = (q > 0) & (jnp.sum(d * nrm[:, None], -1) > 0)
