@@ -241,7 +241,8 @@ class StartSearch(NamedTuple):
     the grid with the lowest ``cost(model (..., 3)) -> (3,)`` (per channel),
     and per parameter (an array of its shape) the largest relative change of
     the cost along it over the grid (0 where the pixels do not depend on it;
-    the start check skips a parameter the search saw change the cost).
+    the fit's start check is skipped when every free parameter's is above
+    ``fitter.fit._search.SEEN_CHANGE``).
     """
 
     rounds: Callable

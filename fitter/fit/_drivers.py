@@ -328,8 +328,8 @@ def _hold_dead_columns(problem: Problem, coarse: bool = False) -> tuple[Problem,
 
     Returns the problem without them and the seconds spent compiling. The
     Jacobian does not depend on the target, so one check serves a batch.
-    Parameters the start search saw change the cost (``problem.alive``) need
-    no check; where every free one did, no Jacobian is made.
+    Where the start search saw every free parameter change the cost
+    (``problem.alive``), none can be dead and no Jacobian is made.
     ``coarse``: the fit will start coarse (``_coarse``), whose full-size
     Gauss-Newton step has the Jacobian's R factor on all pixels: the check uses
     that executable (one compile fewer) instead of its own.

@@ -34,10 +34,10 @@ SEARCH_PIXELS = 2048
 #: estimate also counts fine image structure, so it is an upper bound).
 TRUNCATION_NOISE_FRACTION = 0.1
 #: A parameter along which the search's cost changed by more than this
-#: (relative) is one the pixels depend on: the start check (``_drivers``,
-#: a Jacobian at the start, 0.9 s of a dielectric's first run to trace and
-#: compile) skips it. Conservative: that check calls a column dead only below
-#: 1e-9 of the largest (``_identify.ZERO_COLUMN``).
+#: (relative) is one the pixels depend on; where every free one did, the start
+#: check (``_drivers``: a Jacobian at the start, 0.9 s of a dielectric's first
+#: run to trace and compile) is not made. Conservative: that check calls a
+#: column dead only below 1e-9 of the largest (``_identify.ZERO_COLUMN``).
 SEEN_CHANGE = 1e-6
 
 
