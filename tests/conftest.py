@@ -67,3 +67,22 @@ def fresnel_reference(cos_i, eta):
 @pytest.fixture(scope="session")
 def quadrature():
     return spherical_quadrature
+
+
+@pytest.fixture
+def finer_builds(monkeypatch):
+    """[(supersampling, thread name)] of each geometry the stated discretisation
+    error (``fitter.fit._discretisation``) builds while the test runs."""
+    import threading
+
+    from fitter.fit import _discretisation
+
+    made_on = []
+    build = _discretisation.build_geometry
+
+    def recorded(scene, *args, **kwargs):
+        made_on.append((scene.supersampling, threading.current_thread().name))
+        return build(scene, *args, **kwargs)
+
+    monkeypatch.setattr(_discretisation, "build_geometry", recorded)
+    return made_on

@@ -132,7 +132,8 @@ def sun_probe(tmp_path_factory):
     return path
 
 
-def test_sun_lit_finer_geometries_made_ahead_give_the_same_fit(sun_probe, monkeypatch):
+def test_sun_lit_finer_geometries_made_ahead_give_the_same_fit(sun_probe, finer_builds,
+                                                               monkeypatch):
     # An environment map lighting opaque lobes: prefetch makes both finer
     # geometries (2k samples with the default sun cells, k with FINER_SUN).
     scene = fitter.Scene(width=32, height=32, supersampling=2,
@@ -142,14 +143,7 @@ def test_sun_lit_finer_geometries_made_ahead_give_the_same_fit(sun_probe, monkey
     truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "torrance_sparrow.m": 0.15,
              "torrance_sparrow.eta": 1.5}
     target = np.asarray(fitter.render(truth, scene.replace(supersampling=6), material))
-    made_on = []
-    build = _discretisation.build_geometry
-
-    def recorded(s, *args, **kwargs):
-        made_on.append((s.supersampling, threading.current_thread().name))
-        return build(s, *args, **kwargs)
-
-    monkeypatch.setattr(_discretisation, "build_geometry", recorded)
+    made_on = finer_builds
     _fresh(monkeypatch)
     ahead = fitter.fit(target, scene, material, init=truth)
     assert made_on == [(4, "fitter-finer-geometry"), (2, "fitter-finer-geometry")]

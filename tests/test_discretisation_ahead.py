@@ -17,17 +17,10 @@ GLOSSY = {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.15,
           "torrance_sparrow.eta": 1.5}
 
 
-def test_the_finer_geometry_made_ahead_gives_the_same_stated_errors(monkeypatch):
+def test_the_finer_geometry_made_ahead_gives_the_same_stated_errors(finer_builds, monkeypatch):
     # Target with 16 x 16 samples, fitted with 2 x 2: a discretisation error to state.
     target = np.asarray(fitter.render(GLOSSY, SCENE.replace(supersampling=16)))
-    made_on = []
-    build = _discretisation.build_geometry
-
-    def recorded(scene, *args, **kwargs):
-        made_on.append((scene.supersampling, threading.current_thread().name))
-        return build(scene, *args, **kwargs)
-
-    monkeypatch.setattr(_discretisation, "build_geometry", recorded)
+    made_on = finer_builds
     monkeypatch.setattr(_discretisation, "_GEOMETRIES", {})  # none kept from other fits
     ahead = fitter.fit(target, SCENE, "lambert+torrance_sparrow")
     assert made_on == [(4, "fitter-finer-geometry")]
