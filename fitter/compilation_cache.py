@@ -20,6 +20,13 @@ import os
 #: A field of XLA's DebugOptions, so every backend accepts it; only the CPU
 #: compiler reads it.
 FAST_COMPILE = {"xla_cpu_use_fusion_emitters": False}
+#: ``FAST_COMPILE`` without XLA's YNNPACK library fusions, for gather-heavy
+#: elementwise graphs: the sky table (``fitter.skystencil.sky_table``, per env
+#: sample and stencil cell: a rotation, atan2s and mip-map gathers) ran 1.6 ->
+#: 1.1 s at 128^2 with them off, as YNNPACK ran its small products and norms
+#: as separate library calls. The fit's executables keep them: their batched
+#: sky sums are YNNPACK dots (env_plastic's compiled fit 1.8 -> 2.8 s without).
+NO_LIBRARY_FUSIONS = {**FAST_COMPILE, "xla_cpu_experimental_ynn_fusion_type": ""}
 
 
 def cache_dir() -> str:

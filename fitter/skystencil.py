@@ -344,11 +344,13 @@ def _table_all_fn():
     """Jitted ``_table_fn`` over chunks (n, step, ...) -> (n x step / B, rows, N) float64."""
     import jax
 
+    from .compilation_cache import NO_LIBRARY_FUSIONS
+
     def run(nrm, wo, wt, *consts, rows):
         out = jax.lax.map(lambda x: _table_fn()(*x, *consts), (nrm, wo, wt))
         return out.reshape((-1, rows, out.shape[-1]))
 
-    return jax.jit(run, static_argnames="rows")
+    return jax.jit(run, static_argnames="rows", compiler_options=NO_LIBRARY_FUSIONS)
 
 
 def _table_all(*args, rows):
