@@ -5,11 +5,18 @@
 ``fitter fit`` or on another ``fitter batch`` worker -- skips XLA compilation.
 Importing this module is free; JAX is imported only when the cache is set.
 ``FAST_COMPILE`` holds the XLA options the fit's executables are compiled with.
+``cached_arrays`` keeps a scene-independent table (the sky stencil's) beside
+the cache, so a later process loads it instead of computing it again.
 """
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import hashlib
 import os
+import pathlib
+import tempfile
 
 #: XLA compiler options of the fitter's executables (``jax.jit(...,
 #: compiler_options=...)`` or ``.compile(options)``). XLA's CPU fusion
@@ -52,3 +59,62 @@ def enable_compilation_cache() -> None:
 
     jax.config.update("jax_compilation_cache_dir", folder)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+def active_dir() -> str:
+    """The folder of JAX's persistent cache if code set one (``enable_compilation_cache``),
+    else ``""``; without JAX imported, ``""``."""
+    import sys
+
+    jax = sys.modules.get("jax")
+    return (getattr(jax.config, "jax_compilation_cache_dir", None) or "") if jax else ""
+
+
+@functools.lru_cache(maxsize=1)
+def sources_fingerprint() -> str:
+    """SHA-256 of fitter's Python sources (what a cached file was made by)."""
+    h = hashlib.sha256()
+    for path in sorted(pathlib.Path(__file__).resolve().parent.rglob("*.py")):
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def store_atomically(folder: str, path: str, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (a reader never sees half a file)."""
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def cached_arrays(name: str, key: str, make):
+    """``make()`` (a tuple of NumPy arrays), kept in the active cache folder
+    (``active_dir``) under a name hashing ``key``, NumPy's version and fitter's
+    sources, and loaded from there by later processes. Without a cache folder,
+    or on any problem with the file, ``make()`` itself."""
+    import numpy as np
+
+    folder = active_dir()
+    if not folder:
+        return make()
+    digest = hashlib.sha256((name + key + np.__version__ + sources_fingerprint()).encode())
+    path = os.path.join(folder, f"fitter-{name}-{digest.hexdigest()[:32]}.npz")
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            return tuple(f[f"a{i}"] for i in range(len(f.files)))
+    except Exception:  # noqa: BLE001 (missing, stale or unreadable: made anew below)
+        pass
+    arrays = make()
+    with contextlib.suppress(Exception):  # a cache problem must never stop the work
+        import io
+
+        buf = io.BytesIO()
+        np.savez(buf, **{f"a{i}": a for i, a in enumerate(arrays)})
+        store_atomically(folder, path, buf.getvalue())
+    return arrays

@@ -13,17 +13,15 @@ optimistix (``_solvers.outcome_table`` names its result codes). Any problem with
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import os
-import pathlib
-import tempfile
 
 import jax
 from jax import export
 
 from ..bsdf.base import Cosines
+from ..compilation_cache import sources_fingerprint, store_atomically
 from ..environment import EnvData
 from ..geometry import Geometry
 from ._problem import Data
@@ -34,13 +32,10 @@ for _cls in (Data, Geometry, Cosines, EnvData):
 
 @functools.lru_cache(maxsize=1)
 def _source_fingerprint() -> str:
-    root = pathlib.Path(__file__).resolve().parents[1]
     from ._solvers import _library_versions  # a trace holds their code and result codes
 
-    h = hashlib.sha256((jax.__version__ + _library_versions()).encode())
-    for path in sorted(root.rglob("*.py")):
-        h.update(path.read_bytes())
-    return h.hexdigest()
+    return hashlib.sha256((jax.__version__ + _library_versions()
+                           + sources_fingerprint()).encode()).hexdigest()
 
 
 def compile_cached(f, args, key: str, options: dict | None = None):
@@ -79,21 +74,7 @@ def _cached(f, args, key: str, finish):
         pass
     try:
         exported = export.export(jax.jit(f))(*args)
-        _store(folder, path, exported.serialize())
+        store_atomically(folder, path, exported.serialize())
         return finish(jax.jit(exported.call).lower(*args))
     except Exception:  # noqa: BLE001 (a cache problem must never break a fit)
         return finish(jax.jit(f).lower(*args))
-
-
-def _store(folder: str, path: str, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (a reader never sees half a file)."""
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".tmp-")
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise

@@ -143,10 +143,10 @@ def outcome_table() -> dict[int, tuple[str, str]]:
         _TABLE[code] = (status, optx.RESULTS[item])
         code += 1
     if path:
-        from ._cache import _store
+        from ..compilation_cache import store_atomically
 
         try:
-            _store(folder, path, json.dumps({str(k): v for k, v in _TABLE.items()}).encode())
+            store_atomically(folder, path, json.dumps({str(k): v for k, v in _TABLE.items()}).encode())
         except OSError:
             pass
     return _TABLE

@@ -1,0 +1,81 @@
+"""``fitter.compilation_cache.cached_arrays``: the sky stencil's scene-independent
+tables (``skystencil._tables``, ``skystencil.node_geometry``) kept beside the
+compilation cache. A later process loads exactly what an earlier one made; a
+corrupt file is made again and replaced; without a cache folder nothing is
+written. The reference is the computation itself (``make``), run in the test."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from fitter import compilation_cache, skystencil
+
+
+@pytest.fixture
+def cache_folder(tmp_path):
+    before = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path))
+    yield tmp_path
+    jax.config.update("jax_compilation_cache_dir", before)
+
+
+def test_a_later_call_loads_the_same_arrays_without_making_them(cache_folder):
+    made = []
+
+    def make():
+        made.append(1)
+        return np.arange(6.0).reshape(2, 3), np.array([1, 2], np.int32)
+
+    first = compilation_cache.cached_arrays("probe", "k", make)
+    again = compilation_cache.cached_arrays("probe", "k", make)
+    assert len(made) == 1
+    assert len(list(cache_folder.glob("fitter-probe-*.npz"))) == 1
+    for a, b in zip(first, again):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    compilation_cache.cached_arrays("probe", "other key", make)
+    assert len(made) == 2  # another key is another file
+
+
+def test_a_corrupt_file_is_made_again_and_replaced(cache_folder):
+    make = lambda: (np.linspace(0.0, 1.0, 5),)  # noqa: E731
+    compilation_cache.cached_arrays("probe", "k", make)
+    (path,) = cache_folder.glob("fitter-probe-*.npz")
+    path.write_bytes(b"not an npz file")
+    (got,) = compilation_cache.cached_arrays("probe", "k", make)
+    assert np.array_equal(got, make()[0])
+    (again,) = compilation_cache.cached_arrays("probe", "k", lambda: pytest.fail("made again"))
+    assert np.array_equal(again, make()[0])
+
+
+def test_without_a_cache_folder_nothing_is_written(tmp_path, monkeypatch):
+    assert not jax.config.jax_compilation_cache_dir  # the suite runs without one
+    monkeypatch.chdir(tmp_path)
+    made = []
+    for _ in range(2):
+        compilation_cache.cached_arrays("probe", "k", lambda: made.append(1) or (np.ones(2),))
+    assert len(made) == 2 and not list(tmp_path.iterdir())
+
+
+def test_the_stencil_tables_from_disk_equal_the_computed_ones(cache_folder, monkeypatch):
+    nodes, sub = 9, (2, 4)  # a small node count: a file of its own
+    fresh_cos, fresh_w = skystencil._node_geometry(nodes, sub)
+    fresh_tables = skystencil._tables()
+    clear = lambda: (skystencil.node_geometry.cache_clear(),  # noqa: E731
+                     skystencil._cached_tables.cache_clear())
+    clear()
+    try:
+        skystencil.node_geometry(nodes, sub)  # made and stored
+        skystencil._cached_tables()
+        assert len(list(cache_folder.glob("fitter-sky-*.npz"))) == 2
+        clear()
+        monkeypatch.setattr(skystencil, "_node_geometry", lambda *a: pytest.fail("made again"))
+        monkeypatch.setattr(skystencil, "_tables", lambda: pytest.fail("made again"))
+        cos, w = skystencil.node_geometry(nodes, sub)
+        tables = skystencil._cached_tables()
+    finally:
+        clear()  # later tests make their own
+    assert type(cos) is type(fresh_cos)
+    for a, b in zip((*cos, w, *tables), (*fresh_cos, fresh_w, *fresh_tables)):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
