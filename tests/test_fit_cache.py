@@ -85,11 +85,12 @@ def test_a_repeated_fit_loads_its_trace_without_the_solver_libraries(tmp_path):
 
 
 def test_a_repeated_fit_traces_nothing_and_states_the_same_errors(tmp_path):
-    # Every compiled step of a fit -- the start's check, the solve, the cost
-    # profile and the discretisation's finer render -- is exported on the first
-    # run and loaded by the next, which must give the same values and errors.
+    # Every compiled step of a fit -- the solve, the cost profile and the
+    # discretisation's finer render (no start check: the solution shows no zero
+    # column, ``_drivers._checked_after``) -- is exported on the first run and
+    # loaded by the next, which must give the same values and errors.
     first = run_fit_lines(tmp_path)
-    assert int(first["traced"]) >= 4
+    assert int(first["traced"]) >= 3
     again = run_fit_lines(tmp_path)
     assert int(again["traced"]) == 0
     assert json.loads(again["result"]) == json.loads(first["result"])

@@ -1,7 +1,8 @@
 """The public drivers, target image(s) -> FitResult.
 
 Flow: set up the problem -> search the start and cut work options where a lobe
-has them (``_search``) -> hold parameters without effect at the start ->
+has them (``_search``) -> hold parameters without effect at the start (for
+Levenberg-Marquardt only where the solution shows one, ``_checked_after``) ->
 solve from one or more starts (one compiled call) -> keep the lowest cost ->
 check identifiability at the solution, hold and refit -> verdict.
 """
@@ -40,6 +41,12 @@ from .result import FitResult
 MAX_REFITS = 2
 #: The zero-column check at the start first looks at every 8th fitted pixel.
 START_CHECK_STRIDE = 8
+#: Solvers whose fits make that check only where the solution shows a zero
+#: column (``_checked_after``): a damped step never moves a coordinate whose
+#: column is zero. It cost ~0.6 s of an environment-lit first fit (its trace and
+#: compile) and ~0.1 s of each compiled one. Undamped Gauss-Newton and dogleg
+#: would factor a singular J^T J, so they are checked first.
+CHECK_AFTER = ("levenberg_marquardt",)
 #: Starts a one-start fit is re-solved from when the solution lies in a weakly
 #: identified valley (``_identify.weak_direction``).
 AUTO_STARTS = 4
@@ -169,14 +176,17 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                               weights=weights, saturation=saturation, loss=loss, dtype=dtype,
                               n_starts=n_starts)
     t_compile = 0.0
+    # Damped solves check for parameters without effect after the solve (``_checked_after``).
+    after = identifiability and not coarse and problem.static["solver_name"] in CHECK_AFTER
     if identifiability:
         if not coarse:  # the solve traced, compiled beside the check (unless that holds one)
             compile_ahead("solve", problem.spec, (problem.cast(problem.z_init()[None]),
                                                   problem.data(0)), **problem.static)
-        say("checking which parameters the pixels depend on")
-        problem, t_compile = _hold_dead_columns(problem, coarse)
-        if not problem.blocks:
-            return all_held(problem, 0, t_compile, 0.0)
+        if not after:
+            say("checking which parameters the pixels depend on")
+            problem, t_compile = _hold_dead_columns(problem, coarse)
+            if not problem.blocks:
+                return all_held(problem, 0, t_compile, 0.0)
     # The stated error's finer geometry (NumPy) on a thread from here: beside the
     # solve's and the profile's XLA runs, after the Python-heavy start check.
     _discretisation.prefetch(problem)
@@ -188,6 +198,12 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                               solve_starts, say)
     if first is None:
         first = solve_starts(problem, z0s, data, say)
+        if after:
+            problem, first, tc = _checked_after(problem, first, n_starts, say)
+            t_compile += tc
+            if not problem.blocks:
+                return all_held(problem, 0, t_compile, time.perf_counter() - t_start - t_compile)
+            data = problem.data(0)
     zs, codes, nsteps, costs, best, (R, r), tc = first
     t_compile += tc
     note = None
@@ -356,6 +372,30 @@ def _hold_dead_columns(problem: Problem, coarse: bool = False) -> tuple[Problem,
         stride = 1
     dead = blocks_of(problem.spec, dead)
     return problem.held(dead, [_dead_reason(problem, k) for k in dead]), t_compile
+
+
+def _checked_after(problem: Problem, first, n_starts: int, say=_quiet):
+    """The start check (``_hold_dead_columns``) after a damped solve, made only
+    where the solution shows a zero Jacobian column.
+
+    Levenberg-Marquardt's damped step leaves a coordinate whose column is zero
+    where it is, so a parameter dead at the start is dead at the solution too;
+    one that lives at the solution is fitted (the check at the start would have
+    held it at its start). Returns (problem, ``solve_starts``'s result, compile
+    seconds spent beyond that result's): the problem and solve as they were, or,
+    with parameters dead at the start, those held and the rest solved again.
+    """
+    zs, _, _, _, best, (R, _), _ = first
+    if not dead_columns(problem.spec, zs[best], r_factor(R)).any():
+        return problem, first, 0.0
+    say("checking which parameters the pixels depend on")
+    held, t_check = _hold_dead_columns(problem)
+    if held.blocks == problem.blocks:  # dead at the solution only: ``_finish`` holds it
+        return problem, first, t_check
+    if not held.blocks:
+        return held, first, t_check + first[-1]
+    z0s = make_starts(held.spec, held.z_init(), n_starts)
+    return held, solve_starts(held, z0s, held.data(0), say), t_check + first[-1]
 
 
 def _dead_reason(problem: Problem, key: str) -> str:
