@@ -13,9 +13,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
+from ._math import to_device
 from .bsdf.base import Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
 from .compilation_cache import FAST_COMPILE
@@ -286,7 +286,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
 
     if env_type == "envmap":
         # One compiled lookup: op by op it compiled ~50 kernels (3 s of a first fit).
-        miss_rad = np.asarray(_LOOKUP(env_type, env, jnp.asarray(d)))  # (H, W, K, 3)
+        miss_rad = np.asarray(_LOOKUP(env_type, env, to_device(d)))  # (H, W, K, 3)
     else:  # a constant: no device round trip (each eager op compiles a kernel)
         miss_rad = np.broadcast_to(np.asarray(env.constant, dtype=np.float64), d.shape)
     background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
@@ -325,7 +325,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
             order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
             rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
             e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
-            irr = np.asarray(_SKY_SUM(jnp.asarray(e_nw.sum(-1)), node, frac, e_c))
+            irr = np.asarray(_SKY_SUM(to_device(e_nw.sum(-1)), node, frac, e_c))
             e_irr = np.zeros((pixel_index.size, 3))
             np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])
     if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)

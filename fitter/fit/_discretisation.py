@@ -31,7 +31,6 @@ from __future__ import annotations
 import threading
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .. import envlight
@@ -348,7 +347,8 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
 
 
 def _params(data, params):
-    return {k: jnp.asarray(v, data.target.dtype) for k, v in params.items()}
+    # to_device: jnp.asarray compiled a conversion kernel per shape on a first run
+    return {k: to_device(np.asarray(v), data.target.dtype) for k, v in params.items()}
 
 
 def coarse_without_sky(data, params, material, env_type, model) -> np.ndarray:
@@ -357,7 +357,7 @@ def coarse_without_sky(data, params, material, env_type, model) -> np.ndarray:
     geo = data.geometry
     if not geo.has_sky:
         return np.asarray(model, dtype=np.float64)
-    empty = jnp.zeros((0, 0, 0), dtype=geo.env_color.dtype)
+    empty = to_device(np.zeros((0, 0, 0)), geo.env_color.dtype)  # (no kernel compiled)
     return _render(_params(data, params), geo._replace(env_color=empty), data.env,
                    data.sphere, material, env_type)
 
@@ -373,7 +373,7 @@ def sky_stencil_error(data, params, material, env_type) -> np.ndarray:
     dark = geo._replace(  # no lights, no sun, no background: the sky term alone
         cosines=type(geo.cosines)(*(a[:0] for a in geo.cosines)),
         light_weight=geo.light_weight[:0], light_color=geo.light_color[:0], sun=(),
-        background=jnp.zeros_like(geo.background))
+        background=to_device(np.zeros(np.shape(geo.background)), geo.background.dtype))
     opts = {k: v for k, v in material.options if k.split(".")[0] in glossy}
     sky = _render(_params(data, params), dark, data.env, data.sphere,
                   Material.make(glossy, opts), env_type)
