@@ -46,6 +46,30 @@ def test_a_fit_without_dead_parameters_makes_no_start_jacobian(monkeypatch):
     _same(after, first)
 
 
+def test_a_coarse_start_without_dead_parameters_makes_no_check(monkeypatch):
+    """A coarse start (``fit._coarse``) would read the start check's Jacobian
+    from a full-size linearisation at the start; with every parameter alive
+    at the solution none is made, and the fit is the one checked first."""
+    from fitter.fit import _coarse
+
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "phong.rho_s": 0.3, "phong.e": 40.0}
+    target = _target(truth)
+    monkeypatch.setattr(_coarse, "MIN_PIXELS", 32 * 32)
+    assert _coarse.eligible(SCENE, mask="interior", exclude=None, weights=None,
+                            saturation=None, loss="l2", dtype=np.float64, n_starts=1)
+
+    def no_check(*args, **kwargs):
+        raise AssertionError("the start check ran")
+
+    with monkeypatch.context() as m:
+        m.setattr(_drivers, "_hold_dead_columns", no_check)
+        after = fitter.fit(target, SCENE, "lambert+phong")
+    monkeypatch.setattr(_drivers, "CHECK_AFTER", ())
+    first = fitter.fit(target, SCENE, "lambert+phong")
+    assert after.status == "converged" and not after.unidentifiable
+    _same(after, first)
+
+
 def test_a_parameter_dead_at_the_start_is_held_as_the_check_first_holds_it(monkeypatch):
     # A mirror in a black environment shows nothing: rho_m's column is zero everywhere.
     truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "mirror.rho_m": 0.8}

@@ -44,8 +44,9 @@ START_CHECK_STRIDE = 8
 #: Solvers whose fits make that check only where the solution shows a zero
 #: column (``_checked_after``): a damped step never moves a coordinate whose
 #: column is zero. It cost ~0.6 s of an environment-lit first fit (its trace and
-#: compile) and ~0.1 s of each compiled one. Undamped Gauss-Newton and dogleg
-#: would factor a singular J^T J, so they are checked first.
+#: compile), ~0.1 s of each compiled one and a full-size linearisation of a
+#: coarse start's. Undamped Gauss-Newton and dogleg would factor a singular
+#: J^T J, so they are checked first.
 CHECK_AFTER = ("levenberg_marquardt",)
 #: Starts a one-start fit is re-solved from when the solution lies in a weakly
 #: identified valley (``_identify.weak_direction``).
@@ -177,7 +178,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                               n_starts=n_starts)
     t_compile = 0.0
     # Damped solves check for parameters without effect after the solve (``_checked_after``).
-    after = identifiability and not coarse and problem.static["solver_name"] in CHECK_AFTER
+    after = identifiability and problem.static["solver_name"] in CHECK_AFTER
     if identifiability:
         if not coarse:  # the solve traced, compiled beside the check (unless that holds one)
             compile_ahead("solve", problem.spec, (problem.cast(problem.z_init()[None]),
@@ -198,12 +199,12 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                               solve_starts, say)
     if first is None:
         first = solve_starts(problem, z0s, data, say)
-        if after:
-            problem, first, tc = _checked_after(problem, first, n_starts, say)
-            t_compile += tc
-            if not problem.blocks:
-                return all_held(problem, 0, t_compile, time.perf_counter() - t_start - t_compile)
-            data = problem.data(0)
+    if after:
+        problem, first, tc = _checked_after(problem, first, n_starts, say, coarse)
+        t_compile += tc
+        if not problem.blocks:
+            return all_held(problem, 0, t_compile, time.perf_counter() - t_start - t_compile)
+        data = problem.data(0)
     zs, codes, nsteps, costs, best, (R, r), tc = first
     t_compile += tc
     note = None
@@ -374,22 +375,25 @@ def _hold_dead_columns(problem: Problem, coarse: bool = False) -> tuple[Problem,
     return problem.held(dead, [_dead_reason(problem, k) for k in dead]), t_compile
 
 
-def _checked_after(problem: Problem, first, n_starts: int, say=_quiet):
+def _checked_after(problem: Problem, first, n_starts: int, say=_quiet, coarse=False):
     """The start check (``_hold_dead_columns``) after a damped solve, made only
     where the solution shows a zero Jacobian column.
 
     Levenberg-Marquardt's damped step leaves a coordinate whose column is zero
     where it is, so a parameter dead at the start is dead at the solution too;
     one that lives at the solution is fitted (the check at the start would have
-    held it at its start). Returns (problem, ``solve_starts``'s result, compile
-    seconds spent beyond that result's): the problem and solve as they were, or,
-    with parameters dead at the start, those held and the rest solved again.
+    held it at its start). A coarse start's undamped full-size finish
+    (``_coarse``) fails on a zero column, and the full-size solve it falls back
+    to is damped. Returns (problem, ``solve_starts``'s result, compile seconds
+    spent beyond that result's): the problem and solve as they were, or, with
+    parameters dead at the start, those held and the rest solved again
+    (directly at full size).
     """
     zs, _, _, _, best, (R, _), _ = first
     if not dead_columns(problem.spec, zs[best], r_factor(R)).any():
         return problem, first, 0.0
     say("checking which parameters the pixels depend on")
-    held, t_check = _hold_dead_columns(problem)
+    held, t_check = _hold_dead_columns(problem, coarse)
     if held.blocks == problem.blocks:  # dead at the solution only: ``_finish`` holds it
         return problem, first, t_check
     if not held.blocks:
