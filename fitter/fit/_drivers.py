@@ -180,7 +180,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     # Damped solves check for parameters without effect after the solve (``_checked_after``).
     after = identifiability and problem.static["solver_name"] in CHECK_AFTER
     if identifiability:
-        if not coarse:  # the solve traced, compiled beside the check (unless that holds one)
+        if not coarse:  # the solve traced, compiled on a thread beside what follows
             compile_ahead("solve", problem.spec, (problem.cast(problem.z_init()[None]),
                                                   problem.data(0)), **problem.static)
         if not after:
@@ -189,7 +189,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
             if not problem.blocks:
                 return all_held(problem, 0, t_compile, 0.0)
     # The stated error's finer geometry (NumPy) on a thread from here: beside the
-    # solve's and the profile's XLA runs, after the Python-heavy start check.
+    # solve's and the profile's XLA runs, after a start check made first.
     _discretisation.prefetch(problem)
     data = problem.data(0)
     z0s = make_starts(problem.spec, problem.z_init(), n_starts)

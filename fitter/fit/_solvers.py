@@ -146,7 +146,8 @@ def outcome_table() -> dict[int, tuple[str, str]]:
         from ..compilation_cache import store_atomically
 
         try:
-            store_atomically(folder, path, json.dumps({str(k): v for k, v in _TABLE.items()}).encode())
+            table = json.dumps({str(k): v for k, v in _TABLE.items()})
+            store_atomically(folder, path, table.encode())
         except OSError:
             pass
     return _TABLE
