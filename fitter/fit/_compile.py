@@ -27,12 +27,14 @@ FAST_XLA_OPTIONS = FAST_COMPILE
 #: (fixed cost 45 -> 15 ms), for no gain per step.
 SOLVE_XLA_OPTIONS = {**FAST_XLA_OPTIONS,
                      "xla_disable_hlo_passes": "while-loop-invariant-code-motion"}
-#: The solver loops of a material of specular lobes only (the dielectric's
-#: bounces, a mirror: ray-traced radiance with envmap lookups, whose graphs are
-#: large and whose run is gathers and libm calls) with LLVM's optimisation at
-#: level 1: the shipped dielectric's first run 4.34 -> 4.05 s, compiled 1.28 ->
-#: 1.22 s (``dielectric.py``, same run). Not for opaque lobes: env_plastic's
-#: compiled fit 1.47 -> 1.78 s, the 128^2 point-lit plastic 0.45 -> 0.86 s.
+#: The solver loops of a material of specular lobes only (ray-traced radiance
+#: with envmap lookups: the dielectric's bounce graphs are large and their run
+#: is gathers and libm calls) with LLVM's optimisation at level 1: the shipped
+#: dielectric's first run 4.22 -> 4.02 s, compiled 1.26 -> 1.25 s
+#: (``dielectric.py --repeat 3``, same run); ``configs/mirror.toml`` unchanged
+#: (first 1.52-1.60 s, compiled 0.13-0.14 s either way). Not for opaque lobes:
+#: env_plastic's compiled fit 1.47 -> 1.78 s, the 128^2 point-lit plastic 0.45
+#: -> 0.86 s.
 SPECULAR_SOLVE_XLA_OPTIONS = {**SOLVE_XLA_OPTIONS, "xla_backend_optimization_level": 1}
 #: XLA options for code run once on few pixels (the start's dead-column check):
 #: LLVM's optimisation off too cuts its compile again (dielectric: 1.2 ->
