@@ -313,34 +313,43 @@ def costs_at(spec: Spec, zs, data) -> np.ndarray:
     return 0.5 * np.sum(r * r, axis=1)
 
 
-#: The last solution's whole Jacobian (``remember_jacobian``); one only, and
-#: dropped once used: at 1024^2 one is ~130 MB.
-_JACOBIANS: dict = {}
-_KEEP_JACOBIANS = 1
+#: The last solution's whole Jacobian (``remember_jacobian``): one only, and
+#: dropped once used (at 1024^2 one is ~130 MB), with what it was made from.
+_JACOBIANS: list = []
 
 
-def _jacobian_key(spec: Spec, z, data):
-    import hashlib
+def _snapshot(a) -> np.ndarray:
+    """``a`` on the host as it is now: a device array's read-only view, a copy of
+    a writable host array (the caller may change it later)."""
+    v = np.asarray(a)
+    return v.copy() if v.flags.writeable else v
 
-    h = hashlib.blake2b(digest_size=16)
-    for a in (z, data.target, data.weights):
-        a = np.asarray(a)
-        h.update(str((a.shape, a.dtype)).encode())
-        h.update(np.ascontiguousarray(a).tobytes())
-    for k in sorted(data.fixed):
-        h.update(k.encode())
-        h.update(np.asarray(data.fixed[k], dtype=np.float64).tobytes())
-    return spec, h.hexdigest()
+
+def _same(a, b) -> bool:
+    a, b = np.asarray(a), np.asarray(b)
+    return (a.shape == b.shape and a.dtype == b.dtype
+            and np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"))
+
+
+def _made_from(spec: Spec, z, data):
+    """What a remembered Jacobian was made from: compared, not hashed (a hash of the
+    target and weights took ~8 ms of a compiled 256^2 fit; a comparison is a memcmp)."""
+    return (spec, _snapshot(z), _snapshot(data.target), _snapshot(data.weights),
+            {k: _snapshot(v) for k, v in data.fixed.items()})
+
+
+def _is_made_from(made, spec: Spec, z, data) -> bool:
+    spec0, z0, target, weights, fixed = made
+    return (spec0 == spec and _same(z0, z) and _same(target, data.target)
+            and _same(weights, data.weights) and fixed.keys() == data.fixed.keys()
+            and all(_same(v, data.fixed[k]) for k, v in fixed.items()))
 
 
 def remember_jacobian(spec: Spec, z, data, J, r) -> None:
     """Keep the solver's last linearisation (J (N, n), r (N,)) at its solution
     ``z``, so that ``jac_full`` there returns it instead of linearising again."""
-    key = _jacobian_key(spec, z, data)
-    _JACOBIANS.pop(key, None)
-    _JACOBIANS[key] = (np.asarray(J, dtype=np.float64), np.asarray(r, dtype=np.float64))
-    while len(_JACOBIANS) > _KEEP_JACOBIANS:
-        _JACOBIANS.pop(next(iter(_JACOBIANS)))
+    _JACOBIANS[:] = [(_made_from(spec, z, data), np.asarray(J, dtype=np.float64),
+                      np.asarray(r, dtype=np.float64))]
 
 
 def jac_full(spec: Spec, z, data):
@@ -348,9 +357,9 @@ def jac_full(spec: Spec, z, data):
 
     The solver's own linearisation when ``z`` is a solution it returned
     (``remember_jacobian``: the same J, spared a second linearisation)."""
-    known = _JACOBIANS.pop(_jacobian_key(spec, z, data), None)
-    if known is not None:
-        return known[0], known[1], 0.0
+    if _JACOBIANS and _is_made_from(_JACOBIANS[0][0], spec, z, data):
+        _, J, r = _JACOBIANS.pop()
+        return J, r, 0.0
     z = jnp.asarray(z, dtype=data.target.dtype)
     exe, tc = compiled("jacfull", spec, (z, data))
     J, r = exe(z, data)
