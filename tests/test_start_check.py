@@ -84,10 +84,15 @@ def test_a_parameter_dead_at_the_start_is_held_as_the_check_first_holds_it(monke
     _same(after, first)
 
 
-def test_every_parameter_dead_fails_without_a_second_solve():
+def test_every_parameter_dead_fails_without_a_second_solve(monkeypatch):
     # The only light is behind the sphere: no visible pixel depends on the lobe.
     scene = SCENE.replace(lights=(fitter.PointLight((0.0, 0.0, -6.0), (50.0, 50.0, 50.0)),))
+    solves = []
+    solve_starts = _drivers.solve_starts
+    monkeypatch.setattr(_drivers, "solve_starts",
+                        lambda *a, **k: solves.append(1) or solve_starts(*a, **k))
     r = fitter.fit(np.zeros((32, 32, 3)), scene, "phong")
+    assert len(solves) == 1  # the damped solve, then the check holds everything
     assert r.status == "failed" and set(r.unidentifiable) == {"phong.rho_s", "phong.e"}
     assert all(np.all(np.isfinite(v)) for v in r.params.values())
 
