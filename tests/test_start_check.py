@@ -30,18 +30,26 @@ def _same(a, b):
         np.testing.assert_array_equal(b.stderr[key], value)
 
 
-def test_a_fit_without_dead_parameters_makes_no_start_jacobian(monkeypatch):
-    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "phong.rho_s": 0.3, "phong.e": 40.0}
-    target = _target(truth)
+ALIVE = {"lambert.rho_d": [0.5, 0.4, 0.3], "phong.rho_s": 0.3, "phong.e": 40.0}
 
-    def no_jacobian(*args, **kwargs):
-        raise AssertionError("the start check made a Jacobian")
+
+def _without(monkeypatch, name: str, scene=SCENE):
+    """Fit ``ALIVE``'s target with ``_drivers.<name>`` raising (it must not run),
+    then as every fit did before (the check first); both results."""
+    target = _target(ALIVE, scene)
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError(f"_drivers.{name} ran")
 
     with monkeypatch.context() as m:
-        m.setattr(_drivers, "jac_res", no_jacobian)
-        after = fitter.fit(target, SCENE, "lambert+phong")
+        m.setattr(_drivers, name, forbidden)
+        after = fitter.fit(target, scene, "lambert+phong")
     monkeypatch.setattr(_drivers, "CHECK_AFTER", ())
-    first = fitter.fit(target, SCENE, "lambert+phong")
+    return after, fitter.fit(target, scene, "lambert+phong")
+
+
+def test_a_fit_without_dead_parameters_makes_no_start_jacobian(monkeypatch):
+    after, first = _without(monkeypatch, "jac_res")
     assert after.status == "converged" and not after.unidentifiable
     _same(after, first)
 
@@ -52,20 +60,14 @@ def test_a_coarse_start_without_dead_parameters_makes_no_check(monkeypatch):
     at the solution none is made, and the fit is the one checked first."""
     from fitter.fit import _coarse
 
-    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "phong.rho_s": 0.3, "phong.e": 40.0}
-    target = _target(truth)
-    monkeypatch.setattr(_coarse, "MIN_PIXELS", 32 * 32)
-    assert _coarse.eligible(SCENE, mask="interior", exclude=None, weights=None,
-                            saturation=None, loss="l2", dtype=np.float64, n_starts=1)
-
-    def no_check(*args, **kwargs):
-        raise AssertionError("the start check ran")
-
-    with monkeypatch.context() as m:
-        m.setattr(_drivers, "_hold_dead_columns", no_check)
-        after = fitter.fit(target, SCENE, "lambert+phong")
-    monkeypatch.setattr(_drivers, "CHECK_AFTER", ())
-    first = fitter.fit(target, SCENE, "lambert+phong")
+    scene = SCENE.replace(width=64, height=64)  # 32^2 fell back from its coarse start
+    monkeypatch.setattr(_coarse, "MIN_PIXELS", 64 * 64)
+    finished = []
+    solve = _coarse.solve
+    monkeypatch.setattr(_coarse, "solve", lambda *a, **k: finished.append(solve(*a, **k))
+                        or finished[-1])
+    after, first = _without(monkeypatch, "_hold_dead_columns", scene)
+    assert len(finished) == 2 and all(f is not None for f in finished)  # both started coarse
     assert after.status == "converged" and not after.unidentifiable
     _same(after, first)
 
