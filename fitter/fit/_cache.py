@@ -21,7 +21,7 @@ import jax
 from jax import export
 
 from ..bsdf.base import Cosines
-from ..compilation_cache import sources_fingerprint, store_atomically
+from ..compilation_cache import active_dir, sources_fingerprint, store_atomically
 from ..environment import EnvData
 from ..geometry import Geometry
 from ._problem import Data
@@ -61,7 +61,7 @@ def lower_cached(f, args, key: str):
 def _cached(f, args, key: str, finish):
     """``finish(jax.jit(g).lower(*args))`` with g the exported trace on disk, else a
     fresh export (stored), else ``f`` itself."""
-    folder = jax.config.jax_compilation_cache_dir
+    folder = active_dir()
     if not folder:
         return finish(jax.jit(f).lower(*args))
     digest = hashlib.sha256((key + _source_fingerprint()).encode()).hexdigest()[:32]

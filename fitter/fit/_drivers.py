@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..compilation_cache import active_dir
 from ..hugepages import advice_off
 from ..limits import check_fit
 from ..scene import Scene
@@ -63,7 +64,7 @@ def _import_ahead() -> None:
     traces may come from disk (``_cache``), which run without it."""
     import sys
 
-    if "optimistix" in sys.modules or jax.config.jax_compilation_cache_dir:
+    if "optimistix" in sys.modules or active_dir():
         return
 
     def load():

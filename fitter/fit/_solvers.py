@@ -9,6 +9,7 @@ import os
 import jax
 import numpy as np
 
+from ..compilation_cache import active_dir, store_atomically
 from ._names import SOLVERS
 
 # optimistix, lineax and optax (0.5 s to import with equinox and jaxtyping) are
@@ -118,7 +119,7 @@ def outcome_table() -> dict[int, tuple[str, str]]:
     only to name a code costs 0.5 s); written on the first use."""
     if _TABLE:
         return _TABLE
-    folder = jax.config.jax_compilation_cache_dir
+    folder = active_dir()
     path = None
     if folder:
         import hashlib
@@ -143,8 +144,6 @@ def outcome_table() -> dict[int, tuple[str, str]]:
         _TABLE[code] = (status, optx.RESULTS[item])
         code += 1
     if path:
-        from ..compilation_cache import store_atomically
-
         try:
             table = json.dumps({str(k): v for k, v in _TABLE.items()})
             store_atomically(folder, path, table.encode())
