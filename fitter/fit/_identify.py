@@ -168,13 +168,18 @@ PROFILE_MAX_STEP = 4.0
 #: model's (t^2) while that model puts it outside the 95 % region is a flat
 #: valley; a point below the best cost is another basin.
 PROFILE_FLAT = 0.25
-#: The profile's own evaluation of the cost at the solution may differ from
-#: the solver's by this much chi^2 (rounding, two compiled paths); beyond it
-#: the rises are not resolved and the profile says nothing. Measured on a
-#: noiseless 256^2 target (residuals ~4e-16, 11 ulp of the pixel values):
-#: every point "fell" by chi^2 ~2.5e4 and a converged fit was re-solved from
-#: 6 starts as "another basin"; at noise 2e-3 the difference is ~1e-9.
+#: Chi^2 that rounding may move a profile point's rise by, beyond which the
+#: profile says nothing (``rounding_rise``, and the cost at the solution
+#: evaluated as the points are against the solver's). On noiseless targets
+#: (residuals ~1e-16) every point had "fallen" by chi^2 ~1e2-1e4 and
+#: converged fits were re-solved from 6 starts as "another basin" or "a
+#: flat valley"; at noise 2e-3 (256^2) rounding moves it by ~1e-7.
 PROFILE_RESOLUTION = 1.0
+#: Rounding of a residual assumed by ``rounding_rise``, in ulps of the rms
+#: weighted target. Measured between the solver's residuals and the profile's
+#: at one point: rms 0.1-0.5 ulp (40^2, six lobe sets), 14 ulp (256^2 after a
+#: coarse-to-fine solve, 170 at most).
+ROUNDING_ULPS = 16.0
 
 
 def profile_points(spec: Spec, z, J, s2: float):
@@ -224,6 +229,18 @@ def _chi2_1dof_level() -> float:
     return NormalDist().inv_cdf(0.5 + 0.5 * AMBIGUOUS_LEVEL) ** 2
 
 
+def rounding_rise(data, r, s2: float) -> float:
+    """The chi^2 by which rounding may move a profile point's rise: each
+    residual off by d = ``ROUNDING_ULPS`` eps |weighted target|_rms, the cost by
+    r . d + |d|^2 / 2, so (2 sqrt(N) |r|_rms d + N d^2) / s2."""
+    t = np.asarray(data.target)
+    tw = t * np.asarray(data.weights, dtype=np.float64).reshape(len(t), -1)
+    r = np.asarray(r, dtype=np.float64)
+    d = ROUNDING_ULPS * np.finfo(t.dtype).eps * float(np.sqrt(np.mean(tw * tw)))
+    n = r.size
+    return (2.0 * np.sqrt(n) * float(np.sqrt(np.mean(r * r))) * d + n * d * d) / s2
+
+
 def profile_verdict(s2: float, cost: float, profile) -> tuple[str | None, list]:
     """(why the profile calls for several starts or None, the points to start from).
 
@@ -263,9 +280,10 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
     and their rises measured from the cost there, evaluated as they are: the solver
     stops at its tolerance, which on a near noise-free target is many stated errors
     from the minimum (measured: 40 at 32^2, where the rises at -+3 were -30 and +48).
-    Where the cost at ``z`` itself, evaluated so, is not within ``PROFILE_RESOLUTION``
-    of the solver's (residuals at rounding), the rises are not resolved and the
-    profile finds nothing.
+    Where rounding may move the rises by more than ``PROFILE_RESOLUTION``
+    (``rounding_rise``: residuals near rounding, a noiseless target), or the
+    cost at ``z`` itself, evaluated so, moved by more than that from the
+    solver's, the rises are not resolved and the profile finds nothing.
     """
     from ._compile import costs_at
     from ._profile import subset_costs
@@ -276,7 +294,7 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
     cost = 0.5 * float(r @ r)
     points = profile_points(spec, z, J, s2)
     none = np.zeros((0, np.size(z)))
-    if not points:
+    if not points or not rounding_rise(data, r, s2) <= PROFILE_RESOLUTION:
         return None, none, time.perf_counter() - t0
     J_full, same = _remembered_jacobian(spec, z, data, r)
     z = np.asarray(z, dtype=np.float64)
