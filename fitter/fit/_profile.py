@@ -62,8 +62,9 @@ def standing_out(J, dzs) -> np.ndarray:
     dirs = dzs / np.maximum(np.linalg.norm(dzs, axis=1, keepdims=True), 1e-300)
     lead = np.take_along_axis(dirs, np.argmax(np.abs(dirs), axis=1)[:, None], axis=1)
     dirs = np.unique(np.round(dirs * np.sign(lead), 9), axis=0)
-    v = (J @ dirs.T).reshape(-1, 3, len(dirs))
-    v = np.sum(v * v, axis=1)  # (P, directions)
+    v = J @ dirs.T
+    v = (v * v).reshape(-1, 3, len(dirs))
+    v = v[:, 0] + v[:, 1] + v[:, 2]  # (P, directions); NumPy's sum over 3 is ~10x slower
     return np.any(v > STAND_OUT * np.maximum(v.mean(axis=0), 1e-300), axis=1)
 
 
@@ -122,7 +123,9 @@ def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float):
     k = len(dzs)
     # Per picked pixel: the rise minus its quadratic part, e_p (k, M).
     lin += r0  # the linearised residuals at each point
-    e = (0.5 * (r_sub - lin) * (r_sub + lin)).reshape(k, -1, 3).sum(-1)
+    e = r_sub - lin
+    e *= r_sub + lin  # (not r_sub^2 - lin^2: they nearly cancel)
+    e = e.reshape(k, -1, 3) @ np.full(3, 0.5)  # (k, M); NumPy's sum over 3 is ~10x slower
     rest = e @ weight
     var = (e * e) @ (weight * np.maximum(weight - 1.0, 0.0))
     return 2.0 * (quad + rest) / s2, 2.0 * np.sqrt(var) / s2
