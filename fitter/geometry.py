@@ -116,12 +116,26 @@ class Geometry(NamedTuple):
                      np.asarray(wt)[:, inv[np.asarray(i)] >= 0], np.asarray(col))
                     for i, cs, wt, col in self.sun)
         return self._replace(
-            sun=sun, env_irradiance=pick(self.env_irradiance), env_index=env_rows,
-            pixel_index=pick(self.pixel_index), hit=pick(self.hit),
+            sun=sun, env_index=env_rows, sample_weight=np.asarray(self.sample_weight),
+            light_color=np.asarray(self.light_color), **self._pixels(pick, per_light))
+
+    def take(self, rows) -> "Geometry":
+        """The active pixels ``rows`` only, by plain indexing: NumPy, or JAX
+        inside a traced function (the gather then runs in its executable, not
+        as a host copy). Only without env samples and sun cells, whose row
+        indices ``subset`` remaps."""
+        if np.shape(self.env_index)[0] or self.sun:
+            raise ValueError("take: the geometry has env samples or sun cells; use subset")
+        return self._replace(**self._pixels(lambda a: a[rows], lambda a: a[:, rows]))
+
+    def _pixels(self, pick, per_light) -> dict:
+        """The per-pixel fields, each picked: (P, ...) by ``pick``, (L, P, ...) by ``per_light``."""
+        return dict(
+            env_irradiance=pick(self.env_irradiance), hit=pick(self.hit),
+            pixel_index=None if self.pixel_index is None else pick(self.pixel_index),
             position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
             cosines=Cosines(*(per_light(a) for a in self.cosines)),
-            light_weight=per_light(self.light_weight), background=pick(self.background),
-            sample_weight=np.asarray(self.sample_weight), light_color=np.asarray(self.light_color))
+            light_weight=per_light(self.light_weight), background=pick(self.background))
 
 
 def intersect_sphere(o, d, center, radius):

@@ -146,3 +146,31 @@ def test_noiseless_target_is_not_re_solved(monkeypatch, res, ulps, profiled):
     assert len(res_.starts) == 1 and not res_.warnings, res_.warnings
     for k, v in truth.items():
         np.testing.assert_allclose(res_.params[k], v, rtol=1e-9, err_msg=k)
+
+
+def test_rows_picked_in_the_executable_equal_the_host_subset():
+    """The profile's residuals of a pixel subset picked inside the executable
+    (``Geometry.take``) equal, bit for bit, those of the subset copied on the
+    host (``Geometry.subset``, the reference); ``take`` refuses a geometry
+    with env samples, whose rows only ``subset`` remaps."""
+    import jax
+
+    from fitter.fit import _setup
+
+    scene = fitter.Scene(width=32, height=32, supersampling=2, lights=LIGHTS)
+    mat = fitter.Material.make("lambert+torrance_sparrow", {"torrance_sparrow.geometry": "smith"})
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "torrance_sparrow.m": 0.2,
+             "torrance_sparrow.eta": 1.5}
+    target = np.asarray(fitter.render(truth, scene, mat))
+    problem = _setup.Problem.make(target[None], scene, mat)
+    data = problem.data(0)
+    rows = np.arange(3, np.shape(data.target)[0], 7)
+    zs = np.stack([problem.z_init(), problem.z_init() + 0.1])
+    host = _compile.residuals_at_points(problem.spec, zs, _profile.subset_data(data, rows))
+    inside = _compile.residuals_of_rows(problem.spec, zs, data, rows)
+    assert host.shape == inside.shape == (2, 3 * len(rows))
+    np.testing.assert_array_equal(inside, host)
+    geo = jax.tree_util.tree_map(np.asarray, data.geometry)
+    env = geo._replace(env_index=np.zeros(4, np.int64))
+    with pytest.raises(ValueError, match="subset"):
+        env.take(rows)

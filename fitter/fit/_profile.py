@@ -146,7 +146,7 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     estimate is too close to a threshold; None when the subset does not apply
     (too few pixels, or no whole Jacobian ``J``)."""
     from ._adequacy import pixel_regions
-    from ._compile import costs_at, residuals_at_points
+    from ._compile import costs_at, residuals_at_points, residuals_of_rows
 
     if (not ENABLED or J is None or np.shape(J)[0] != np.size(r)
             or np.shape(data.target)[0] < MIN_PIXELS):
@@ -159,7 +159,10 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     if picks is None:
         return None
     rows, weight = picks
-    r_sub = residuals_at_points(spec, zs, subset_data(data, rows))
+    if np.shape(data.geometry.env_index)[0] or data.geometry.sun:  # rows remapped on the host
+        r_sub = residuals_at_points(spec, zs, subset_data(data, rows))
+    else:
+        r_sub = residuals_of_rows(spec, zs, data, rows)
     rise, se = estimated_rises(J, r, dzs, r_sub, rows, weight, s2)
     costs = cost + 0.5 * s2 * rise
     costs[~np.all(np.isfinite(r_sub), axis=1)] = np.nan  # a subset pixel's NaN is the image's
