@@ -169,8 +169,7 @@ PROFILE_MAX_STEP = 4.0
 #: valley; a point below the best cost is another basin.
 PROFILE_FLAT = 0.25
 #: Chi^2 that rounding may move a profile point's rise by, beyond which the
-#: profile says nothing (``rounding_rise``, and the cost at the solution
-#: evaluated as the points are against the solver's). On noiseless targets
+#: profile says nothing (``rounding_rise``). On noiseless targets
 #: (residuals ~1e-16) every point had "fallen" by chi^2 ~1e2-1e4 and
 #: converged fits were re-solved from 6 starts as "another basin" or "a
 #: flat valley"; at noise 2e-3 (256^2) rounding moves it by ~1e-7.
@@ -277,13 +276,12 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
     in z, guarded by its standard error elsewhere; ``_profile.ENABLED``).
 
     The points are centred on the Gauss-Newton minimum z* = z + dz (``newton_step``)
-    and their rises measured from the cost there, evaluated as they are: the solver
+    and their rises measured from the quadratic model's cost there: the solver
     stops at its tolerance, which on a near noise-free target is many stated errors
     from the minimum (measured: 40 at 32^2, where the rises at -+3 were -30 and +48).
     Where rounding may move the rises by more than ``PROFILE_RESOLUTION``
-    (``rounding_rise``: residuals near rounding, a noiseless target), or the
-    cost at ``z`` itself, evaluated so, moved by more than that from the
-    solver's, the rises are not resolved and the profile finds nothing.
+    (``rounding_rise``: residuals near rounding, a noiseless target), they
+    are not resolved and the profile finds nothing.
     """
     from ._compile import costs_at
     from ._profile import subset_costs
@@ -297,18 +295,16 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
     if not points or not rounding_rise(data, r, s2) <= PROFILE_RESOLUTION:
         return None, none, time.perf_counter() - t0
     J_full, same = _remembered_jacobian(spec, z, data, r)
-    z = np.asarray(z, dtype=np.float64)
-    dz = newton_step(J, J_full.T @ r)
-    # First the solution, then the centre: rounding's floor and the rises' origin.
-    points = [(0.0, z), (0.0, z + dz)] + [(t, zt + dz) for t, zt in points]
+    g = J_full.T @ r
+    dz = newton_step(J, g)
+    points = [(t, zt + dz) for t, zt in points]
     costs = subset_costs(spec, data, z, J_full if same else None, r, s2, cost, points,
                          _chi2_1dof_level(), PROFILE_FLAT)
     if costs is None:
         costs = costs_at(spec, np.stack([zt for _, zt in points]), data)
-    if not abs(2.0 * (costs[0] - cost) / s2) <= PROFILE_RESOLUTION:
-        return None, none, time.perf_counter() - t0
-    evaluated = [(t, zt, float(c)) for (t, zt), c in zip(points[2:], costs[2:])]
-    why, starts = profile_verdict(s2, float(costs[1]), evaluated)
+    evaluated = [(t, zt, float(c)) for (t, zt), c in zip(points, costs)]
+    # The cost at z + dz were it quadratic: cost + g . dz / 2 (dz = -(J^T J)^-1 g).
+    why, starts = profile_verdict(s2, cost + 0.5 * float(g @ dz), evaluated)
     return why, np.asarray(starts).reshape(-1, np.size(z)), time.perf_counter() - t0
 
 

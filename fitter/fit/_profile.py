@@ -166,9 +166,8 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     rise, se = estimated_rises(J, r, dzs, r_sub, rows, weight, s2)
     costs = cost + 0.5 * s2 * rise
     costs[~np.all(np.isfinite(r_sub), axis=1)] = np.nan  # a subset pixel's NaN is the image's
-    # t = 0, the solution itself, measures the estimate's rounding (``weak_profile``).
-    redo = [i for i, (t, _) in enumerate(points) if t != 0
-            and np.isfinite(costs[i]) and near_threshold(t, rise[i], se[i], level, flat)]
+    redo = [i for i, (t, _) in enumerate(points)
+            if np.isfinite(costs[i]) and near_threshold(t, rise[i], se[i], level, flat)]
     if redo:
         costs[redo] = costs_at(spec, zs[redo], data)
     return costs
