@@ -294,12 +294,15 @@ def cmd_fit(args) -> int:
     out = check_out(args.out or os.path.join("out", job.name))  # before any fitting
     from .report_process import start
 
-    report = start()  # imports matplotlib on the other core while JAX imports here
+    # imports matplotlib (and colour-science to score the validation) on the other
+    # core while JAX imports here
+    report = start(metrics=job.fit.validate)
     try:
         enable_compilation_cache()
         with staged_dir(out) as tmp:
             outcome = pipeline.run_job(job, target, saturated, target_path=target_path,
-                                       stage=log.stage)
+                                       stage=log.stage,
+                                       compare=report.compare if report is not None else None)
             result = outcome.to_dict()
             with log.stage("writing outputs"):
                 write_outcome(tmp, outcome, result, report=report)

@@ -27,6 +27,13 @@ def _lab(linear_rgb: np.ndarray) -> np.ndarray:
     return colour.XYZ_to_Lab(xyz, white)
 
 
+def warm_up() -> None:
+    """Import colour-science (with matplotlib, ~1 s) and score a one-pixel
+    image, so that a later ``compare`` costs only its arithmetic."""
+    one = np.full((1, 1, 3), 0.5)
+    compare(one, one)
+
+
 def compare(target, image, mask=None) -> dict:
     """Agreement of ``image`` with ``target``, both (H, W, 3) linear RGB.
 

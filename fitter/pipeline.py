@@ -118,7 +118,7 @@ def _silent(text: str) -> ContextManager:
 
 
 def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *,
-            target_path: str = "", stage: Stage = _silent) -> Outcome:
+            target_path: str = "", stage: Stage = _silent, compare=None) -> Outcome:
     """Fit ``job`` to ``target``, render the fit, validate it (``job.fit.validate``).
 
     Args:
@@ -127,6 +127,8 @@ def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *
         saturated: (H, W) bool pixels clipped in an 8-bit file (excluded).
         target_path: recorded in the result.
         stage: progress wrapper, called with a short text per step.
+        compare: scores the validation instead of ``fitter.metrics.compare``
+            (``validate``).
     """
     preflight(job)
     times: dict[str, float] = {}
@@ -148,7 +150,7 @@ def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *
     if job.fit.validate:
         spp = job.fit.validate_spp
         with timed("validate", f"validating with Mitsuba ({spp} spp)"):
-            validation = validate(job, result.params, target, saturated, spp)
+            validation = validate(job, result.params, target, saturated, spp, compare)
     truth = truth_error(result.params, result.stderr, job.truth) if job.truth else {}
     return Outcome(job=job, target_path=target_path or (job.fit.target or ""), target=target,
                    fit=result, rendered=rendered, validation=validation, truth_error=truth,
@@ -233,8 +235,12 @@ def validation_seed(job: Job) -> int:
 
 
 def validate(job: Job, params: Mapping[str, Any], target: np.ndarray,
-             saturated: np.ndarray | None, spp: int) -> Validation:
-    """Mitsuba re-render of ``params`` and its comparison with ``target``."""
+             saturated: np.ndarray | None, spp: int, compare=None) -> Validation:
+    """Mitsuba re-render of ``params`` and its comparison with ``target``.
+
+    ``compare(target, image, mask)``: ``fitter.metrics.compare``'s scores
+    computed elsewhere (``fitter.report_process``), or None for this process
+    to compute them."""
     from . import metrics, mitsuba
 
     full = job.material.full_params(params)
@@ -251,7 +257,10 @@ def validate(job: Job, params: Mapping[str, Any], target: np.ndarray,
     mask = mask.reshape(job.scene.height, job.scene.width)
     if saturated is not None and saturated.any():
         mask &= ~saturated
-    return Validation(image=img, spp=spp, seed=seed, **metrics.compare(target, img, mask=mask))
+    scores = compare(target, img, mask) if compare is not None else None
+    if scores is None:
+        scores = metrics.compare(target, img, mask=mask)
+    return Validation(image=img, spp=spp, seed=seed, **scores)
 
 
 def truth_error(params: Mapping[str, Any], stderr: Mapping[str, Any],

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
 from test_report import _outcome
 
+from fitter.metrics import compare
 from fitter.outputs import write_outcome
 from fitter.report import make_report
 from fitter.report_process import ReportProcess
@@ -46,3 +48,37 @@ def test_an_unused_helper_is_stopped(tmp_path):
     helper.close()  # the fit failed or was interrupted: nothing to draw
     assert helper.proc.returncode is not None
     assert helper.receive() is None
+
+
+def _images():
+    rng = np.random.default_rng(3)
+    target = rng.uniform(0.0, 1.2, (12, 10, 3))
+    image = target + rng.normal(0.0, 0.02, target.shape)
+    mask = np.zeros((12, 10), bool)
+    mask[2:9, 1:8] = True
+    return target, image, mask
+
+
+def test_the_helper_scores_as_in_process_then_draws(tmp_path):
+    """Reference: ``fitter.metrics.compare`` in this process (same values, bit
+    for bit); the report drawn after a score is still the in-process one."""
+    target, image, mask = _images()
+    helper = ReportProcess(metrics=True)
+    assert helper.compare(target, image, mask) == compare(target, image, mask=mask)
+    outcome = _outcome("solver tolerances met", [])
+    helper.send(outcome, "after a score")
+    assert helper.receive() == _reference(tmp_path, outcome, "after a score")
+
+
+def test_a_failed_or_dead_helper_leaves_the_score_to_the_caller():
+    """A request the helper cannot score (a mask of no pixel) answers None and
+    stops it; a dead helper answers None; ``validate``'s caller then scores
+    in-process (``pipeline.validate``: ``compare`` None -> ``metrics.compare``)."""
+    target, image, mask = _images()
+    helper = ReportProcess(metrics=True)
+    assert helper.compare(target, image, np.zeros_like(mask)) is None
+    assert helper.proc.returncode is not None
+    dead = ReportProcess(metrics=True)
+    dead.proc.kill()
+    dead.proc.wait()
+    assert dead.compare(target, image, mask) is None
