@@ -384,6 +384,7 @@ def sky_stencil_error(data, params, material, env_type) -> np.ndarray:
 
 def shift(J, d) -> np.ndarray:
     """delta_z (n,) = (J^T J)^-1 J^T d: the parameter shift a residual change
-    ``d`` (N,) makes through the linearisation ``J`` (N, n) (both weighted)."""
+    ``d`` (N,) makes through the linearisation ``J`` (N, n) (both weighted);
+    (n, k) for k changes ``d`` (N, k) at once (one factorisation of J)."""
     J = np.asarray(J, dtype=np.float64)
     return np.linalg.lstsq(J, np.asarray(d, dtype=np.float64), rcond=None)[0]

@@ -211,10 +211,10 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     w = np.asarray(data.weights, dtype=np.float64) * covered[:, None]
     diff = finer + (model - coarse) * (coverage / np.maximum(seen, 1e-300))[:, None] - model
     diff = np.where(covered[:, None], diff, 0.0)
-    delta = _discretisation.shift(Js, (diff * w * scale[:, None]).reshape(-1))
     sky = _discretisation.sky_stencil_error(data, params, spec.material, spec.env_type)
-    delta_sky = _discretisation.shift(
-        Js, (sky * np.asarray(data.weights, dtype=np.float64)).reshape(-1))
+    delta, delta_sky = _discretisation.shift(Js, np.stack([
+        (diff * w * scale[:, None]).reshape(-1),
+        (sky * np.asarray(data.weights, dtype=np.float64)).reshape(-1)], axis=1)).T
     cov_disc = np.outer(delta, delta) + np.outer(delta_sky, delta_sky)
     info["discretisation"] = {
         "supersampling": [problem.renderer.scene.supersampling,
