@@ -296,7 +296,7 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
         return None, none, time.perf_counter() - t0
     J_full, same = _remembered_jacobian(spec, z, data, r)
     g = J_full.T @ r
-    dz = newton_step(J, g)
+    dz = newton_step(J, g)  # zero where g is not finite
     points = [(t, zt + dz) for t, zt in points]
     costs = subset_costs(spec, data, z, J_full if same else None, r, s2, cost, points,
                          _chi2_1dof_level(), PROFILE_FLAT)
@@ -304,7 +304,8 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
         costs = costs_at(spec, np.stack([zt for _, zt in points]), data)
     evaluated = [(t, zt, float(c)) for (t, zt), c in zip(points, costs)]
     # The cost at z + dz were it quadratic: cost + g . dz / 2 (dz = -(J^T J)^-1 g).
-    why, starts = profile_verdict(s2, cost + 0.5 * float(g @ dz), evaluated)
+    drop = 0.5 * float(g @ dz) if np.all(np.isfinite(g)) else 0.0
+    why, starts = profile_verdict(s2, cost + drop, evaluated)
     return why, np.asarray(starts).reshape(-1, np.size(z)), time.perf_counter() - t0
 
 
