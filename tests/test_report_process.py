@@ -82,3 +82,28 @@ def test_a_failed_or_dead_helper_leaves_the_score_to_the_caller():
     dead.proc.kill()
     dead.proc.wait()
     assert dead.compare(target, image, mask) is None
+
+
+def test_validate_uses_the_scores_it_is_given_and_scores_itself_without(tmp_path, monkeypatch):
+    """``pipeline.validate``: a ``compare`` answer is what the validation reports;
+    a None answer (the failed helper above) leaves the scoring to
+    ``fitter.metrics.compare`` here, the reference (Mitsuba's render replaced by
+    a fixed image: only the scoring is under test)."""
+    from small_case import write_case
+
+    from fitter import mitsuba, pipeline
+    from fitter.config import load_config
+
+    job = load_config(write_case(str(tmp_path)))
+    target, saturated = pipeline.read_target(job.fit.target, job.scene)
+    image = target * 1.01 + 0.002
+    monkeypatch.setattr(mitsuba, "render", lambda *a, **k: image)
+    params = job.material.full_params({**job.fixed, **job.truth})
+    mine = pipeline.validate(job, params, target, saturated, 4)
+    assert mine.n_pixels > 0 and mine.rmse > 0
+    given = {"rmse": 1.0, "psnr_db": 2.0, "delta_e2000_mean": 3.0, "delta_e2000_max": 4.0,
+             "n_pixels": 5}
+    told = pipeline.validate(job, params, target, saturated, 4, lambda *a: given)
+    assert (told.rmse, told.psnr_db, told.n_pixels) == (1.0, 2.0, 5)
+    failed = pipeline.validate(job, params, target, saturated, 4, lambda *a: None)
+    assert failed.to_dict() == mine.to_dict()
