@@ -170,8 +170,8 @@ def node_geometry(nodes: int = LOBE_NODES, sub: tuple = LOBE_SUB):
 
 
 def _node_geometry(nodes: int, sub: tuple):
-    """``Cosines`` (T, N, M) of M points per stencil cell at the theta_o nodes and the
-    weights (T, N, M) by which the renderer sums a lobe there: cos_o x the point's
+    """``Cosines`` (T, N, M) of M points per stencil cell at the theta_o nodes (cos_o
+    (T, 1, 1): one per node) and the weights (T, N, M) by which the renderer sums a lobe there: cos_o x the point's
     share of the cell's Q = int max(cos_i, 0) dw. The points are the cos-weighted
     centroids of ``sub`` = (alpha, phi) groups of the ``_FINE`` sub-cells that
     tabulate Q, so the shares sum to exactly 1 where Q > 0 (Lambert stays exact).
@@ -207,7 +207,10 @@ def _node_geometry(nodes: int, sub: tuple):
     tot = w.sum(-1, keepdims=True)
     w = np.where(tot > 0, w / np.where(tot > 0, tot, 1.0), 0.0) * np.cos(th)[:, None, None]
     cos = cosines(np.broadcast_to(n, cen.shape), cen, np.broadcast_to(wo, cen.shape))
-    return _reshaped(cos, (nodes, n_cells, sa * sp)), w
+    cos = _reshaped(cos, (nodes, n_cells, sa * sp))
+    # cos_o = n . wo is one value per node: kept (T, 1, 1), so that a lobe's terms in
+    # cos_o alone (Smith's G1, Oren-Nayar's angles) are evaluated per node, not per point.
+    return cos._replace(cos_o=np.ascontiguousarray(cos.cos_o[:, :1, :1])), w
 
 
 def _reshaped(cos, shape):

@@ -68,3 +68,12 @@ def test_windowed_sum_equals_a_direct_per_sample_evaluation(rgb, block, window):
     one = np.asarray(skystencil.sky_sum(jnp.asarray(h[0]), jnp.asarray(win), jnp.asarray(pos),
                                         jnp.asarray(cb)))
     np.testing.assert_allclose(one, val[0], rtol=1e-13, atol=1e-13 * np.abs(ref).max())
+
+
+def test_node_cos_o_is_one_value_per_node():
+    """cos_o = n . wo at theta_o node t is cos(t) (the local frame's n = (sin t, 0,
+    cos t), wo = (sin 2t, 0, cos 2t)): kept (T, 1, 1), every other cosine (T, N, M)."""
+    cos, w = skystencil._node_geometry(9, (2, 4))
+    t = skystencil.node_angles(9)
+    assert cos.cos_o.shape == (9, 1, 1) and cos.cos_i.shape == w.shape
+    np.testing.assert_allclose(cos.cos_o[:, 0, 0], np.cos(t), rtol=0, atol=1e-15)
