@@ -32,8 +32,9 @@ _PNG = b"\x89PNG\r\n\x1a\n"
 
 
 class ReportProcess:
-    """A started helper (``serve``): ``send`` an outcome, then ``receive`` its PNG;
-    ``close`` stops it (unused, or after an error)."""
+    """A started helper (``serve``): ``compare`` a validation (``metrics``: its
+    colour-science imported ahead), ``send`` an outcome, then ``receive`` its
+    PNG; ``close`` stops it (unused, or after an error)."""
 
     def __init__(self, metrics: bool = False):
         root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -49,8 +50,9 @@ class ReportProcess:
 
     def compare(self, target, image, mask, timeout: float = 60.0) -> dict | None:
         """``fitter.metrics.compare(target, image, mask=mask)`` computed by the
-        helper, or None (not started with ``metrics``, already drawing, failed,
-        or silent for ``timeout`` s: then stopped, and the caller scores)."""
+        helper (one started without ``metrics`` imports colour-science now), or
+        None (already drawing, failed, or silent for ``timeout`` s: then
+        stopped, and the caller scores)."""
         import threading
 
         if self._talk is not None or self.proc.poll() is not None:
