@@ -72,3 +72,6 @@ def test_out_of_steps_is_said_in_the_products_words():
     assert r.status == "max_steps"
     assert r.message.startswith("stopped after 2 steps without meeting rtol = 1e-06")
     assert "max_steps" in r.message and "root" not in r.message
+    # Nothing lies within its stated error of a bound: the budget is the advice
+    # (the box-edge case, extreme_sigma0: tests/test_mitsuba_recovery.py).
+    assert "raise max_steps" in r.message and "bound" not in r.message

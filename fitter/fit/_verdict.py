@@ -52,6 +52,23 @@ def start_status(code: int, z, cost) -> str:
     return solver_outcome(code)[0]
 
 
+def _near_bound(spec: Spec, params, sd) -> str:
+    """The parameters whose value lies within its stated error ``sd`` (n,) of a
+    bound of its box, as text ("" if none): where a fit out of steps has its
+    best fit on the box's edge (Oren-Nayar sigma = 0, measured: 0.0029 +- 0.03
+    after 200 steps), the coordinate runs off towards infinity."""
+    near = []
+    for blk, sl in spec.slices():
+        x = np.atleast_1d(np.asarray(params[blk.key], dtype=np.float64))
+        for bound in (blk.lower, blk.upper):
+            if np.any(np.abs(x - bound) <= sd[sl]):
+                e = sd[sl] if blk.size == 3 else float(sd[sl][0])
+                near.append(f"{blk.key} = {format_value(params[blk.key])} lies within its "
+                            f"stated error ({format_value(e)}) of its bound {bound:g}")
+                break
+    return "; ".join(near)
+
+
 def _image_rmse(model, data: Data):
     """Per-channel RMSE (3,) of model - target over the values with a weight,
     and which values have one ((P, 3) bool)."""
@@ -115,6 +132,14 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
             warnings.append(f"{blk.key} = {format_value(params[blk.key])} is at the bound of "
                             f"[{blk.lower:g}, {blk.upper:g}]; its standard error is half "
                             "a +-1 sigma interval cut by that bound")
+    edge = _near_bound(spec, params, sd) if status == "max_steps" else ""
+    if edge:
+        st = problem.static
+        message = (f"stopped after {st['max_steps']} steps without meeting rtol = "
+                   f"{st['rtol']:g} / atol = {st['atol']:g}: {edge}, a best fit on the edge "
+                   "of its box, which the solver's coordinate approaches without reaching "
+                   "(more steps are unlikely to meet the tolerances); the values are where "
+                   "it stopped")
     d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
     corr = cov_z / np.outer(d, d)
     rmse, used = _image_rmse(model, data)
