@@ -249,3 +249,24 @@ def test_one_start_profile_finds_a_flat_valley(monkeypatch):
     monkeypatch.setattr(_identify, "PROFILE_T", ())  # the profile off: the old answer
     old = fitter.fit(target, scene, mat)
     assert len(old.starts) == 1 and "torrance_sparrow.m" not in old.unidentifiable
+
+
+def test_a_parameter_the_image_rejects_at_its_start_is_held_where_the_fit_put_it():
+    """Oren-Nayar at sigma = 0 (= Lambert, the box's edge): the model's slope in
+    sigma vanishes there, so its linearised error exceeds its box and it is
+    held. Held at its start (0.3), the refit had failed as "poor fit" (rho_d
+    off by ~0.04); the image rejects that value (chi^2 rises by ~1e4), so it is
+    held at the fit's value (~0) and rho_d is recovered within 3 stated errors
+    of the truth (reference: the rendering's own truth, noise 0.002)."""
+    lights = LIGHTS + (fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0)),)
+    scene = SCENE.replace(lights=lights)
+    truth = {"oren_nayar.rho_d": [0.5, 0.45, 0.4], "oren_nayar.sigma": 0.0}
+    clean = np.asarray(fitter.render(truth, scene, "oren_nayar"))
+    target = clean + np.random.default_rng(0).normal(0.0, 0.002, clean.shape)
+    r = fitter.fit(target, scene, "oren_nayar")
+    assert r.status == "converged", r.message
+    assert r.unidentifiable == ["oren_nayar.sigma"] and "oren_nayar.sigma" not in r.stderr
+    assert r.params["oren_nayar.sigma"] < 0.02
+    assert any("rejects its initial value" in w for w in r.warnings), r.warnings
+    err = np.abs(r.params["oren_nayar.rho_d"] - truth["oren_nayar.rho_d"])
+    assert np.all(err <= 3 * r.stderr["oren_nayar.rho_d"]), (err, r.stderr)

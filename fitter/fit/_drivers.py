@@ -52,6 +52,10 @@ CHECK_AFTER = ("levenberg_marquardt",)
 #: Starts a one-start fit is re-solved from when the solution lies in a weakly
 #: identified valley (``_identify.weak_direction``).
 AUTO_STARTS = 4
+#: Chi^2 rise of a refit with parameters held at their initial values above
+#: which the image rejects those values (the 95 % quantile of chi^2 with 1
+#: degree of freedom): they are held at the fit's values instead (``_finish``).
+_REJECTED = 3.841458820694124
 
 
 #: Threads importing the solver library (``_import_ahead``).
@@ -451,7 +455,8 @@ def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,
                 reasons.append(why + "; held at this fit's value")
                 values[k] = best[k]
         points = [best] + [user_values(spec, za, data.fixed) for za, _ in alternatives]
-        problem = problem.held(keys, reasons, values)
+        free = problem
+        problem = free.held(keys, reasons, values)
         if not problem.blocks:
             return all_held(problem, b, t_compile, time.perf_counter() - t_start - t_compile)
         spec, data = problem.spec, problem.data(b)
@@ -460,6 +465,22 @@ def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,
         zs, codes, nsteps, costs, best_i, (J, r), tc = solve_starts(
             problem, z0s, data, say, f"refit with {', '.join(keys)} held: ")
         t_compile += tc
+        # Held at its start, a parameter the linearisation calls unconstrained may
+        # be one the image rejects there (Oren-Nayar's sigma run to ~0, where the
+        # model's slope in it vanishes: held at 0.3 the refit failed as "poor fit"):
+        # then it is held at this fit's value.
+        at_start = [k for k in keys if k not in values]
+        rise = 2.0 * (float(costs[best_i]) - cost) / s2 if s2 > 0 else 0.0
+        if at_start and rise > _REJECTED:
+            reasons = [f"{why.split('; held at')[0]}; held at this fit's value, as the image "
+                       f"rejects its initial value (chi^2 {rise:+.3g} held there)"
+                       if k in at_start else why for k, why in zip(keys, reasons)]
+            values.update({k: best[k] for k in at_start})
+            problem = free.held(keys, reasons, values)
+            spec, data = problem.spec, problem.data(b)
+            zs, codes, nsteps, costs, best_i, (J, r), tc = solve_starts(
+                problem, z0s, data, say, f"refit with {', '.join(keys)} held at this fit: ")
+            t_compile += tc
         z, code, cost = zs[best_i], int(codes[best_i]), float(costs[best_i])
         iters += int(nsteps[best_i])
         J, r = r_factor(J), np.asarray(r, dtype=np.float64)
