@@ -29,8 +29,8 @@ from . import _args, _coarse, _compile, _discretisation
 from ._compile import (best_start, compile_ahead, compiled, jac_res, r_factor,
                        remember_jacobian)
 from ._covariance import residual_variance
-from ._identify import (WEAK_EIG, ambiguous, dead_columns, unidentifiable_at, weak_direction,
-                        weak_profile)
+from ._identify import (WEAK_EIG, ambiguous, chi2_1dof_level, dead_columns, unidentifiable_at,
+                        weak_direction, weak_profile)
 from ._problem import blocks_of, format_value, user_values, z_from_params
 from ._search import cheapened, searched
 from ._setup import START_MARGIN, FitError, Problem
@@ -52,10 +52,6 @@ CHECK_AFTER = ("levenberg_marquardt",)
 #: Starts a one-start fit is re-solved from when the solution lies in a weakly
 #: identified valley (``_identify.weak_direction``).
 AUTO_STARTS = 4
-#: Chi^2 rise of a refit with parameters held at their initial values above
-#: which the image rejects those values (the 95 % quantile of chi^2 with 1
-#: degree of freedom): they are held at the fit's values instead (``_finish``).
-_REJECTED = 3.841458820694124
 
 
 #: Threads importing the solver library (``_import_ahead``).
@@ -439,6 +435,9 @@ def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,
             break
         s2 = residual_variance(problem.noise_sigma, data, r, spec)
         unid = unidentifiable_at(spec, z, J, s2)
+        if unid is not None:
+            whys = unid[1]
+            unid = (unid[0], [why + "; held at its initial value" for why in whys])
         amb = ambiguous(spec, z, J, s2, cost, alternatives)
         if unid is None or round_ == MAX_REFITS:
             # Out of rounds: what is still unidentifiable is marked, not held.
@@ -465,17 +464,17 @@ def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,
         zs, codes, nsteps, costs, best_i, (J, r), tc = solve_starts(
             problem, z0s, data, say, f"refit with {', '.join(keys)} held: ")
         t_compile += tc
-        # Held at its start, a parameter the linearisation calls unconstrained may
-        # be one the image rejects there (Oren-Nayar's sigma run to ~0, where the
-        # model's slope in it vanishes: held at 0.3 the refit failed as "poor fit"):
-        # then it is held at this fit's value.
-        at_start = [k for k in keys if k not in values]
+        # Held at its start (the first len(whys) keys), a parameter the linearisation
+        # calls unconstrained may be one the image rejects there (the 95 % level of
+        # chi^2 with 1 dof; Oren-Nayar's sigma run to ~0, where the model's slope in
+        # it vanishes: held at 0.3 the refit failed as "poor fit"): then it is held
+        # at this fit's value.
         rise = 2.0 * (float(costs[best_i]) - cost) / s2 if s2 > 0 else 0.0
-        if at_start and rise > _REJECTED:
-            reasons = [f"{why.split('; held at')[0]}; held at this fit's value, as the image "
-                       f"rejects its initial value (chi^2 {rise:+.3g} held there)"
-                       if k in at_start else why for k, why in zip(keys, reasons)]
-            values.update({k: best[k] for k in at_start})
+        if rise > chi2_1dof_level():
+            reasons[:len(whys)] = [f"{why}; held at this fit's value, as the image rejects "
+                                   f"its initial value (chi^2 {rise:+.3g} held there)"
+                                   for why in whys]
+            values.update({k: best[k] for k in keys[:len(whys)]})
             problem = free.held(keys, reasons, values)
             spec, data = problem.spec, problem.data(b)
             zs, codes, nsteps, costs, best_i, (J, r), tc = solve_starts(

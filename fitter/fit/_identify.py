@@ -59,7 +59,8 @@ def dead_columns(spec: Spec, z, J) -> np.ndarray:
 
 
 def unidentifiable_at(spec: Spec, z, J, s2: float):
-    """Blocks without usable information at ``z``: (keys, reasons) or None.
+    """Blocks without usable information at ``z``: (keys, reasons) or None; the
+    caller says where it holds them.
 
     ``s2``: the residual variance of the covariance (``residual_variance``).
     """
@@ -71,8 +72,7 @@ def unidentifiable_at(spec: Spec, z, J, s2: float):
     dead = dead_columns(spec, z, J)
     for k in blocks_of(spec, dead):
         keys.append(k)
-        reasons.append(f"{k} does not change the fitted pixels at the solution; held at its "
-                       "initial value")
+        reasons.append(f"{k} does not change the fitted pixels at the solution")
     # Columns run off to a box edge carry no slope (reported as at bound); a
     # zero-norm column would make the normalized SVD below NaN.
     live = ~dead & (np.abs(np.asarray(z, dtype=np.float64)) <= SATURATED_Z) & (norms > 0)
@@ -88,15 +88,14 @@ def unidentifiable_at(spec: Spec, z, J, s2: float):
                 if k not in keys:
                     keys.append(k)
                     reasons.append(f"{k} is not separable from the other parameters "
-                                   f"(Jacobian condition number {cond:.2g}); held at its "
-                                   "initial value")
+                                   f"(Jacobian condition number {cond:.2g})")
     if s2 > 0 and not keys:
         _, _, span = covariance(spec, z, J, s2)
         loose = span > MAX_SPAN
         for k in blocks_of(spec, loose):
             keys.append(k)
             reasons.append(f"{k} is not constrained by the image (standard error larger than "
-                           "its whole range); held at its initial value")
+                           "its whole range)")
     return (keys, reasons) if keys else None
 
 
@@ -219,7 +218,7 @@ def profile_points(spec: Spec, z, J, s2: float):
     return out
 
 
-def _chi2_1dof_level() -> float:
+def chi2_1dof_level() -> float:
     """The ``AMBIGUOUS_LEVEL`` quantile of chi^2 with 1 dof, z^2 of the normal's
     (``scipy.special.chdtri(1, 1 - level)`` to 1e-15 relative, without its
     0.1 s import on every fit)."""
@@ -248,7 +247,7 @@ def profile_verdict(s2: float, cost: float, profile) -> tuple[str | None, list]:
     cost is another basin; one whose rise is below ``PROFILE_FLAT`` of that
     while t^2 exceeds the 95 % chi^2 quantile is a flat valley.
     """
-    level = _chi2_1dof_level()
+    level = chi2_1dof_level()
     why, starts = None, []
     for t, zt, ct in profile:
         if not np.isfinite(ct):
@@ -299,7 +298,7 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
     dz = newton_step(J, g)  # zero where g is not finite
     points = [(t, zt + dz) for t, zt in points]
     costs = subset_costs(spec, data, z, J_full if same else None, r, s2, cost, points,
-                         _chi2_1dof_level(), PROFILE_FLAT)
+                         chi2_1dof_level(), PROFILE_FLAT)
     if costs is None:
         costs = costs_at(spec, np.stack([zt for _, zt in points]), data)
     evaluated = [(t, zt, float(c)) for (t, zt), c in zip(points, costs)]
