@@ -69,6 +69,20 @@ def _near_bound(spec: Spec, params, sd) -> str:
     return "; ".join(near)
 
 
+def _out_of_steps(static: dict, edge: str = "") -> str:
+    """The message of a fit out of steps: the budget as the advice, or where a
+    value lies on its box's edge (``_near_bound``, text ``edge``) why more steps
+    will not help."""
+    stopped = (f"stopped after {static['max_steps']} steps without meeting rtol = "
+               f"{static['rtol']:g} / atol = {static['atol']:g}")
+    if edge:
+        return (f"{stopped}: {edge}, a best fit on the edge of its box, which the solver's "
+                "coordinate approaches without reaching (more steps are unlikely to meet the "
+                "tolerances); the values are where it stopped")
+    return (f"{stopped}; the values are where it stopped: raise max_steps (fit.max_steps), "
+            "start nearer (init, n_starts > 1) or loosen rtol/atol")
+
+
 def _image_rmse(model, data: Data):
     """Per-channel RMSE (3,) of model - target over the values with a weight,
     and which values have one ((P, 3) bool)."""
@@ -84,13 +98,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
     """The ``FitResult`` of target ``b`` solved at ``z`` (``J``: the Jacobian's R
     factor there, ``r`` the residuals), with its goodness-of-fit verdict."""
     status = start_status(code, z, cost)
-    message = solver_outcome(code)[1] or "solver tolerances met"
-    if status == "max_steps":
-        st = problem.static
-        message = (f"stopped after {st['max_steps']} steps without meeting rtol = "
-                   f"{st['rtol']:g} / atol = {st['atol']:g}; the values are where it stopped: "
-                   "raise max_steps (fit.max_steps), start nearer (init, n_starts > 1) or "
-                   "loosen rtol/atol")
+    message = solver_outcome(code)[1] or "solver tolerances met"  # max_steps: below
     warnings = list(warnings)
     dof = degrees_of_freedom(data, spec)
     chi2 = float(r @ r)
@@ -132,14 +140,8 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
             warnings.append(f"{blk.key} = {format_value(params[blk.key])} is at the bound of "
                             f"[{blk.lower:g}, {blk.upper:g}]; its standard error is half "
                             "a +-1 sigma interval cut by that bound")
-    edge = _near_bound(spec, params, sd) if status == "max_steps" else ""
-    if edge:
-        st = problem.static
-        message = (f"stopped after {st['max_steps']} steps without meeting rtol = "
-                   f"{st['rtol']:g} / atol = {st['atol']:g}: {edge}, a best fit on the edge "
-                   "of its box, which the solver's coordinate approaches without reaching "
-                   "(more steps are unlikely to meet the tolerances); the values are where "
-                   "it stopped")
+    if status == "max_steps":  # (its stated errors known: is a value on its box's edge?)
+        message = _out_of_steps(problem.static, _near_bound(spec, params, sd))
     d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
     corr = cov_z / np.outer(d, d)
     rmse, used = _image_rmse(model, data)
