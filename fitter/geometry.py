@@ -61,8 +61,9 @@ class Geometry(NamedTuple):
             sky-stencil cell int L cos_i dw times the sample's weight in its
             pixel / cos_o (0 for unlit cells and padding).
         env_cosines: ``Cosines`` (T, N, M) of M points per cell at the theta_o
-            nodes (cos_o, one per node, (T, 1, 1)) and env_node_weight (T, N, M) their weights
-            (``envlight.node_geometry``): the lobe is evaluated on these only.
+            nodes (cos_o, one per node, (T, 1, 1)) and env_node_weight (T, N, M)
+            their weights (``envlight.node_geometry``): the lobe is evaluated on
+            these only.
         env_irradiance: (P, 3) the sky's irradiance E (int L cos_i dw) of each
             pixel, with the sky stencil's own quadrature: a lobe of constant
             shape g reflects g x E (Lambert's 1/pi), no per-step sum.

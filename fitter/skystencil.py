@@ -171,8 +171,8 @@ def node_geometry(nodes: int = LOBE_NODES, sub: tuple = LOBE_SUB):
 
 def _node_geometry(nodes: int, sub: tuple):
     """``Cosines`` (T, N, M) of M points per stencil cell at the theta_o nodes (cos_o
-    (T, 1, 1): one per node) and the weights (T, N, M) by which the renderer sums a lobe there: cos_o x the point's
-    share of the cell's Q = int max(cos_i, 0) dw. The points are the cos-weighted
+    (T, 1, 1): one per node) and the weights (T, N, M) by which the renderer sums
+    a lobe there: cos_o x the point's share of the cell's Q = int max(cos_i, 0) dw. The points are the cos-weighted
     centroids of ``sub`` = (alpha, phi) groups of the ``_FINE`` sub-cells that
     tabulate Q, so the shares sum to exactly 1 where Q > 0 (Lambert stays exact).
     Local frame: r = +z, n = (sin t, 0, cos t), wo = (sin 2t, 0, cos 2t). Points
@@ -209,7 +209,7 @@ def _node_geometry(nodes: int, sub: tuple):
     cos = cosines(np.broadcast_to(n, cen.shape), cen, np.broadcast_to(wo, cen.shape))
     cos = _reshaped(cos, (nodes, n_cells, sa * sp))
     # cos_o = n . wo is one value per node: kept (T, 1, 1), so that a lobe's terms in
-    # cos_o alone (Smith's G1, Oren-Nayar's angles) are evaluated per node, not per point.
+    # cos_o alone (Smith's G1(cos_o)) are evaluated per node, not per point.
     return cos._replace(cos_o=np.ascontiguousarray(cos.cos_o[:, :1, :1])), w
 
 
