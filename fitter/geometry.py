@@ -95,6 +95,11 @@ class Geometry(NamedTuple):
     sun: tuple = ()
 
     @property
+    def has_env_samples(self) -> bool:
+        """Whether env samples or sun cells point at pixel rows (``subset`` remaps them)."""
+        return bool(np.shape(self.env_index)[0] or self.sun)
+
+    @property
     def has_sky(self) -> bool:
         """Whether the environment's sky term lights these pixels (a sky table)."""
         return bool(self.env_color.shape[0] and self.env_color.shape[1])
@@ -125,7 +130,7 @@ class Geometry(NamedTuple):
         inside a traced function (the gather then runs in its executable, not
         as a host copy). Only without env samples and sun cells, whose row
         indices ``subset`` remaps."""
-        if np.shape(self.env_index)[0] or self.sun:
+        if self.has_env_samples:
             raise ValueError("take: the geometry has env samples or sun cells; use subset")
         return self._replace(**self._pixels(lambda a: a[rows], lambda a: a[:, rows]))
 

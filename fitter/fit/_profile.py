@@ -162,7 +162,7 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     if picks is None:
         return None
     rows, weight = picks
-    if np.shape(data.geometry.env_index)[0] or data.geometry.sun:  # rows remapped on the host
+    if data.geometry.has_env_samples:  # their rows are remapped on the host
         r_sub = residuals_at_points(spec, zs, subset_data(data, rows))
     else:
         r_sub = residuals_of_rows(spec, zs, data, rows)
