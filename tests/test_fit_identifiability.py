@@ -270,3 +270,24 @@ def test_a_parameter_the_image_rejects_at_its_start_is_held_where_the_fit_put_it
     assert any("rejects its initial value" in w for w in r.warnings), r.warnings
     err = np.abs(r.params["oren_nayar.rho_d"] - truth["oren_nayar.rho_d"])
     assert np.all(err <= 3 * r.stderr["oren_nayar.rho_d"]), (err, r.stderr)
+
+
+def test_a_parameter_marked_after_the_last_refit_round_is_not_said_to_be_held(monkeypatch):
+    """Out of refit rounds (``MAX_REFITS``, set to 0 here), a parameter still
+    unidentifiable is marked, not held: it keeps the fit's value and no stated
+    error, and its warning says so (it said "held at its initial value").
+    The case is the Oren-Nayar sigma = 0 fit above, whose sigma the image
+    cannot bound (its linearised error exceeds the box)."""
+    from fitter.fit import _drivers
+
+    monkeypatch.setattr(_drivers, "MAX_REFITS", 0)
+    lights = LIGHTS + (fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0)),)
+    scene = SCENE.replace(lights=lights)
+    truth = {"oren_nayar.rho_d": [0.5, 0.45, 0.4], "oren_nayar.sigma": 0.0}
+    clean = np.asarray(fitter.render(truth, scene, "oren_nayar"))
+    target = clean + np.random.default_rng(0).normal(0.0, 0.002, clean.shape)
+    r = fitter.fit(target, scene, "oren_nayar")
+    assert r.unidentifiable == ["oren_nayar.sigma"] and "oren_nayar.sigma" not in r.stderr
+    assert "oren_nayar.sigma" in r.free  # fitted, not held
+    (w,) = [w for w in r.warnings if w.startswith("oren_nayar.sigma")]
+    assert "left at this fit's value" in w and "held" not in w, w

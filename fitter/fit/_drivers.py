@@ -435,17 +435,18 @@ def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,
             break
         s2 = residual_variance(problem.noise_sigma, data, r, spec)
         unid = unidentifiable_at(spec, z, J, s2)
-        if unid is not None:
-            whys = unid[1]
-            unid = (unid[0], [why + "; held at its initial value" for why in whys])
         amb = ambiguous(spec, z, J, s2, cost, alternatives)
         if unid is None or round_ == MAX_REFITS:
             # Out of rounds: what is still unidentifiable is marked, not held.
+            if unid is not None:
+                unid = (unid[0], [why + "; left at this fit's value, with no stated error"
+                                  for why in unid[1]])
             marked = [list(u) + list(a) for u, a in zip(unid or ([], []), amb or ([], []))]
             break
         if not refit:
             return None
-        keys, reasons = unid
+        keys, whys = unid
+        reasons = [why + "; held at its initial value" for why in whys]
         best = user_values(spec, z, data.fixed)
         values = {}
         for k, why in zip(*(amb or ([], []))):
