@@ -25,7 +25,7 @@ from ..compilation_cache import active_dir
 from ..hugepages import advice_off
 from ..limits import check_fit
 from ..scene import Scene
-from . import _args, _coarse, _compile, _discretisation
+from . import _args, _coarse, _compile, _discretisation, _edge
 from ._compile import (best_start, compile_ahead, compiled, jac_res, r_factor,
                        remember_jacobian)
 from ._covariance import residual_variance
@@ -489,5 +489,9 @@ def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,
     if marked and marked[0]:
         unidentifiable += list(dict.fromkeys(marked[0]))
         warnings += marked[1]
-    return report(problem, b, spec, data, z, code, iters, cost, J, r, warnings,
-                  unidentifiable, t_start, t_compile, starts)
+    res = report(problem, b, spec, data, z, code, iters, cost, J, r, warnings,
+                 unidentifiable, t_start, t_compile, starts)
+    if refit and identifiability and res.status == "max_steps":  # a best fit on a box edge?
+        res = _edge.pin(problem, b, res, cost, solve_starts, _finish, say, t_start,
+                        t_compile, starts) or res
+    return res

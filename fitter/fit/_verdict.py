@@ -52,21 +52,26 @@ def start_status(code: int, z, cost) -> str:
     return solver_outcome(code)[0]
 
 
-def _near_bound(spec: Spec, params, sd) -> str:
-    """The parameters whose value lies within its stated error ``sd`` (n,) of a
-    bound of its box, as text ("" if none): where a fit out of steps has its
-    best fit on the box's edge (Oren-Nayar sigma = 0, measured: 0.0029 +- 0.03
-    after 200 steps), the coordinate runs off towards infinity."""
+def near_bounds(spec: Spec, params, sd) -> list:
+    """[(block, bound, its stated error)] of the parameters whose value lies within
+    its stated error ``sd`` (n,) of a bound of its box: where a fit out of steps
+    has its best fit on the box's edge (Oren-Nayar sigma = 0, measured: 0.0029
+    +- 0.03 after 200 steps), the coordinate runs off towards infinity."""
     near = []
     for blk, sl in spec.slices():
         x = np.atleast_1d(np.asarray(params[blk.key], dtype=np.float64))
         for bound in (blk.lower, blk.upper):
             if np.any(np.abs(x - bound) <= sd[sl]):
-                e = sd[sl] if blk.size == 3 else float(sd[sl][0])
-                near.append(f"{blk.key} = {format_value(params[blk.key])} lies within its "
-                            f"stated error ({format_value(e)}) of its bound {bound:g}")
+                near.append((blk, bound, sd[sl] if blk.size == 3 else float(sd[sl][0])))
                 break
-    return "; ".join(near)
+    return near
+
+
+def _near_bound(spec: Spec, params, sd) -> str:
+    """``near_bounds`` as text ("" if none)."""
+    return "; ".join(f"{blk.key} = {format_value(params[blk.key])} lies within its stated "
+                     f"error ({format_value(e)}) of its bound {bound:g}"
+                     for blk, bound, e in near_bounds(spec, params, sd))
 
 
 def _out_of_steps(static: dict, edge: str = "") -> str:
