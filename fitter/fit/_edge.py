@@ -5,7 +5,7 @@ Where the model's slope in a parameter also vanishes at the edge (Oren-Nayar
 at sigma = 0: its A and B terms change as sigma^2), the solver's coordinate
 runs towards the edge ever more slowly and the fit runs out of steps short of
 it: extreme_sigma0 (Mitsuba, 128^2) stopped after 200 steps at sigma = 0.0029,
-where chi^2 is 61 above its value at sigma = 0 with rho_d refit.
+where chi^2 is 64 above its value at sigma = 0 with rho_d refit.
 
 ``pin``: a fit out of steps with a value within its stated error of an edge
 is refit with that value held on the edge. If the refit converges and fits
@@ -21,8 +21,6 @@ moves it far).
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import numpy as np
 
@@ -69,9 +67,12 @@ def one_sided(spec, data, key: str, bound: float, values: dict, J_other, r_edge,
     i = above[0]
     if i == 0:
         return float(xs[0])
-    # Between the last point below 1 and the first above, linear in the rise.
-    t = (1.0 - rise[i - 1]) / (rise[i] - rise[i - 1])
-    return float(xs[i - 1] + t * (xs[i] - xs[i - 1]))
+    lo, hi = rise[i - 1], rise[i]
+    d0, d1 = abs(xs[i - 1] - bound), abs(xs[i] - bound)
+    if lo > 0:  # a power law in the distance from the edge between the two points
+        t = np.log(1.0 / lo) / np.log(hi / lo)
+        return float(bound + side * d0 * (d1 / d0) ** t)
+    return float(bound + side * (d0 + (1.0 - lo) / (hi - lo) * (d1 - d0)))
 
 
 def pin(problem, b: int, stopped, cost: float, solve_starts, finish, say, t_start: float,
@@ -127,15 +128,13 @@ def pin(problem, b: int, stopped, cost: float, solve_starts, finish, say, t_star
            f"Its statistical error is one-sided: chi^2 (the others refit) rises by 1 at "
            f"{format_value(x1)}, so half of [{bound:g}, {format_value(x1)}]; its systematic "
            "part is the one stated where the solver stopped")
-    pinned = dataclasses.replace(pinned, warnings=pinned.warnings + (why,))
+    pinned = problem.pinned({key: bound}, [why])
     res = finish(pinned, b, z_p, int(codes[best]), stopped.iterations + int(nsteps[best]),
                  cost_p, identifiability=True, t_start=t_start, t_compile=t_compile,
                  starts=starts, jr=(r_factor(R), r), say=say)
-    if key in res.unidentifiable:  # (pinned, it cannot be; a guard for the report's keys)
-        return None
     res.stderr[key] = float(np.hypot(stat, sys_))
     res.stderr_stat[key] = stat
     res.stderr_sys[key] = sys_
     res.stderr_disc[key] = float(stopped.stderr_disc.get(key, 0.0))
-    res.free = list(stopped.free)
+    res.free = [k for k in stopped.free if k in res.free or k == key]
     return res

@@ -46,7 +46,9 @@ class FitResult:
             ambiguous by the multi-start check (another start as good,
             elsewhere), which keep the best start's value.
         correlation: (n, n) correlation matrix of the free scalar
-            coordinates named in ``coordinates`` (``"lambert.rho_d[0]"``, ...).
+            coordinates named in ``coordinates`` (``"lambert.rho_d[0]"``, ...);
+            a value refit on the edge of its box (``fitter.fit._edge``) has
+            none: it is free, but held on the edge in the final solve.
         coordinates: names of the rows of ``correlation``.
         status: ``"converged"``, ``"max_steps"`` or ``"failed"``; only
             ``"converged"`` means the solver met its tolerances *and* the fit
