@@ -19,11 +19,13 @@ product is added to the systematic covariance (a bias stated as an error).
 The sky term (``fitter.skystencil``) is not refined: at 2k its env samples
 triple and, at ``envlight.Detail.finer()``, its tabulation doubles (measured
 at 128^2 env_plastic: 52 s of a 72 s fit, peak RSS 4.8 GB, against 13 s and
-1.3 GB without). Its measured accuracy (``SKY_STENCIL_ACCURACY``) times the
-non-Lambert lobes' fitted sky term is propagated the same way instead.
+1.3 GB without). Its measured accuracy (``SKY_STENCIL_ACCURACY``; Lambert's,
+``IRRADIANCE_ACCURACY``) times the fitted sky term of each kind of lobe is
+propagated the same way instead, the kinds independent.
 Cost: finer geometries without sky tabulation, renders of the sampled
-fitted pixels and of the sky term, two J^T d with the Jacobian the
-systematic part already computed (``benchmarks/discretisation_cost.py``).
+fitted pixels and of the sky term, one least-squares solve for every shift
+with the Jacobian the systematic part already computed
+(``benchmarks/discretisation_cost.py``).
 """
 
 from __future__ import annotations
@@ -62,6 +64,12 @@ FINER_SUN = (4, 16)
 #: 4096 spp Torrance-Sparrow m = 0.1 relative RMSE 0.62 % over a 0.38 %
 #: noise floor, limb pixels +0.03 % (benchmarks/README.md, envlight).
 SKY_STENCIL_ACCURACY = 0.005
+#: Lambert's sky term, rho/pi x the irradiance the stencil tabulates (exact for a
+#: constant sky), stated to this relative accuracy: against Mitsuba at 4096 spp
+#: under the probe its relative RMSE is 0.41 % over a 0.20 % noise floor, so
+#: 0.36 % of its own, mean -0.12 % (benchmarks/README.md, envlight). Left out, the
+#: env cases' rho_d was off by 3-4 stated errors (env_plastic: 0.0016 +- 0.00037).
+IRRADIANCE_ACCURACY = 0.004
 
 #: Body pixels (away from highlights and the rim: a smooth model error) the
 #: finer model renders: every this many-th, each standing for this many.
@@ -363,23 +371,30 @@ def coarse_without_sky(data, params, material, env_type, model) -> np.ndarray:
 
 
 def sky_stencil_error(data, params, material, env_type) -> np.ndarray:
-    """A stated bound of the sky stencil's error (P, 3): ``SKY_STENCIL_ACCURACY``
-    times the fitted sky term of the opaque lobes other than Lambert (Lambert's
-    is exact, rho/pi x irradiance); zeros when the environment lights none."""
+    """Stated bounds of the sky stencil's error (k, P, 3), one per kind of lobe
+    the environment lights, taken as independent: ``SKY_STENCIL_ACCURACY`` times
+    the fitted sky term of the opaque lobes other than Lambert, and
+    ``IRRADIANCE_ACCURACY`` times Lambert's; (0, P, 3) when it lights none."""
     geo = data.geometry
-    glossy = [lb.name for lb in material.lobe_objects if lb.kind == "brdf" and lb.name != "lambert"]
-    if not (glossy and geo.has_sky):
-        return np.zeros(np.asarray(geo.background).shape)
+    brdf = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
+    groups = [(names, accuracy) for names, accuracy in (
+        ([n for n in brdf if n != "lambert"], SKY_STENCIL_ACCURACY),
+        ([n for n in brdf if n == "lambert"], IRRADIANCE_ACCURACY)) if names]
+    if not (groups and geo.has_sky):
+        return np.zeros((0,) + np.shape(geo.background))
     dark = geo._replace(  # no lights, no sun, no background: the sky term alone
         cosines=type(geo.cosines)(*(a[:0] for a in geo.cosines)),
         light_weight=geo.light_weight[:0], light_color=geo.light_color[:0], sun=(),
         background=to_device(np.zeros(np.shape(geo.background)), geo.background.dtype))
-    opts = {k: v for k, v in material.options if k.split(".")[0] in glossy}
-    sky = _render(_params(data, params), dark, data.env, data.sphere,
-                  Material.make(glossy, opts), env_type)
-    if material.exposure:
-        sky = sky * float(params[EXPOSURE_KEY])
-    return SKY_STENCIL_ACCURACY * sky
+    out = []
+    for names, accuracy in groups:
+        opts = {k: v for k, v in material.options if k.split(".")[0] in names}
+        sky = _render(_params(data, params), dark, data.env, data.sphere,
+                      Material.make(names, opts), env_type)
+        if material.exposure:
+            sky = sky * float(params[EXPOSURE_KEY])
+        out.append(accuracy * sky)
+    return np.stack(out)
 
 
 def shift(J, d) -> np.ndarray:
