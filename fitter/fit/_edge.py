@@ -15,9 +15,12 @@ errors from the refit. The pinned value's statistical error is one-sided: the
 profile likelihood, chi^2 with the other parameters refit (linearised about
 the refit), rises by 1 at x_1 (``one_sided``), and, as for any value at its
 bound (``_covariance.covariance``), its standard error is half the interval
-[edge, x_1]. Its systematic part is the one stated where the solver stopped
-(it is larger there: the model's slope in the value is small, so a model error
-moves it far).
+[edge, x_1]. Its systematic part is that statistical error times the largest
+systematic-to-statistical ratio of the refit's parameters (``scaled_like``): the
+linearisation the others' systematic parts come from has no slope in it on
+the edge, and the one where the solver stopped, short of the optimum, reads
+the misfit of the solver's own stopping point as structure (measured: 0.6 on
+a model-rendered 128^2 target, 0.03 on Mitsuba's, for sigma = 0 exactly).
 """
 
 from __future__ import annotations
@@ -118,23 +121,37 @@ def pin(problem, b: int, stopped, cost: float, solve_starts, finish, say, t_star
     if x1 is None:
         return None
     stat = 0.5 * abs(x1 - bound)
-    sys_ = float(stopped.stderr_sys.get(key, 0.0))
-    gap = 2.0 * (cost - cost_p) / s2
-    at = (f"chi^2 {gap:.3g} above its value on the edge" if gap >= 0.01 else
-          "chi^2 as low as on the edge")
-    why = (f"{key} is on the edge of its box, {bound:g}: the fit with it free ran out of "
-           f"steps approaching it (at {format_value(stopped.params[key])}, {at}); held "
-           "there, the others refit. "
-           f"Its statistical error is one-sided: chi^2 (the others refit) rises by 1 at "
-           f"{format_value(x1)}, so half of [{bound:g}, {format_value(x1)}]; its systematic "
-           "part is the one stated where the solver stopped")
-    pinned = problem.pinned({key: bound}, [why])
     res = finish(pinned, b, z_p, int(codes[best]), stopped.iterations + int(nsteps[best]),
                  cost_p, identifiability=True, t_start=t_start, t_compile=t_compile,
                  starts=starts, jr=(r_factor(R), r), say=say)
+    sys_, disc = scaled_like(res, stat)
+    gap = 2.0 * (cost - cost_p) / s2
+    at = (f"chi^2 {gap:.3g} above its value on the edge" if gap >= 0.01 else
+          "chi^2 as low as on the edge")
+    res.warnings.append(
+        f"{key} is on the edge of its box, {bound:g}: the fit with it free ran out of "
+        f"steps approaching it (at {format_value(stopped.params[key])}, {at}); held "
+        "there, the others refit. Its statistical error is one-sided: chi^2 (the others "
+        f"refit) rises by 1 at {format_value(x1)}, so half of [{bound:g}, "
+        f"{format_value(x1)}]; its systematic part in the proportion of the others'")
     res.stderr[key] = float(np.hypot(stat, sys_))
     res.stderr_stat[key] = stat
     res.stderr_sys[key] = sys_
-    res.stderr_disc[key] = float(stopped.stderr_disc.get(key, 0.0))
+    res.stderr_disc[key] = disc
     res.free = [k for k in stopped.free if k in res.free or k == key]
     return res
+
+
+def scaled_like(res, stat: float) -> tuple[float, float]:
+    """(systematic, discretisation) parts for a statistical error ``stat``, in the
+    proportion of the result's parameter (or channel) whose systematic part is
+    the largest against its statistical one; (0, 0) where none has one."""
+    sys_ratio, disc_ratio = 0.0, 0.0
+    for k, st_k in res.stderr_stat.items():
+        st_k = np.atleast_1d(np.asarray(st_k, dtype=np.float64))
+        sy_k, di_k = (np.broadcast_to(np.asarray(part.get(k, 0.0), dtype=np.float64), st_k.shape)
+                      for part in (res.stderr_sys, res.stderr_disc))
+        for a, b, c in zip(st_k, sy_k, di_k):
+            if a > 0 and np.isfinite(b) and b / a > sys_ratio:
+                sys_ratio, disc_ratio = b / a, c / a
+    return stat * sys_ratio, stat * disc_ratio
