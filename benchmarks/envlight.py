@@ -88,7 +88,7 @@ def _variant(label):
 
 
 def _clear():
-    skystencil._tables.cache_clear()
+    skystencil._cached_tables.cache_clear()
     skystencil.node_geometry.cache_clear()
     R._prepare.cache_clear()
     R.cached_renderer.cache_clear()

@@ -211,10 +211,12 @@ def split_sun(img: np.ndarray, cell: int = SUN_CELL, sub: int = SUN_SUB):
 
 
 def env_lights(env_type: str, image: np.ndarray, constant: np.ndarray,
-               detail: Detail = Detail(), sun: tuple = (SUN_CELL, SUN_SUB)) -> EnvLights | None:
+               detail: Detail | None = None, sun: tuple = (SUN_CELL, SUN_SUB)) -> EnvLights | None:
     """The split environment, or None for a black one; ``detail``: the sky term's
-    discretisation, which ``geometry.build_geometry`` uses;
+    discretisation, which ``geometry.build_geometry`` uses (default ``Detail()``,
+    made per call: ``benchmarks/envlight.py`` varies its defaults);
     ``sun``: (cell, sub) of ``split_sun`` (the sun's discretisation)."""
+    detail = Detail() if detail is None else detail
     if env_type == "envmap":
         sun_dir, sun_irr, sky = split_sun(image, *sun)
         return EnvLights(sun_dir, sun_irr, Pyramid(sky), detail)

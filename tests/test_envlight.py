@@ -286,3 +286,12 @@ def test_lamberts_sky_term_is_stated_to_its_measured_accuracy():
     assert res.status == "converged", res.message
     disc = np.asarray(res.stderr_disc["lambert.rho_d"])
     np.testing.assert_allclose(disc, IRRADIANCE_ACCURACY * rho, rtol=0.05)
+
+
+def test_the_sky_detail_is_made_per_call(monkeypatch):
+    """``env_lights``'s default discretisation is ``Detail()`` at call time, so the
+    accuracy study (``benchmarks/envlight.py``) can vary it (a default made once at
+    import had left its variants silently equal to the default)."""
+    monkeypatch.setattr(envlight.Detail.__new__, "__defaults__", (49, (1, 2)))
+    lights = envlight.env_lights("constant", np.zeros((2, 4, 3)), np.array([1.0, 1.0, 1.0]))
+    assert lights.detail == envlight.Detail(49, (1, 2))
