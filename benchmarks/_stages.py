@@ -29,6 +29,7 @@ WRAPPED = (
     ("_discretisation", "coarse_without_sky", "discretisation term (_discretisation)"),
     ("_discretisation", "finer_values", "discretisation term (_discretisation)"),
     ("_discretisation", "sky_stencil_error", "discretisation term (_discretisation)"),
+    ("_discretisation", "ring_error", "discretisation term (_discretisation)"),
     ("_discretisation", "shift", "discretisation term (_discretisation)"),
 )
 COARSE = "solve: coarse set-up and full-size Gauss-Newton steps"

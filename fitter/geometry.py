@@ -342,9 +342,10 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
         rows, e_n, e_v, e_w = rows[ok], e_n[ok], e_v[ok], e_w[ok]
         det = lighting.detail
         if lighting.sky is not None:
-            order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes)
+            order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes,
+                                               rings=det.rings)
             rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
-            e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub))
+            e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub), det.rings)
             irr = np.asarray(_SKY_SUM(to_device(e_nw.sum(-1)), node, frac, e_c))
             e_irr = np.zeros((pixel_index.size, 3))
             np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])

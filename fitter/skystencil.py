@@ -47,6 +47,9 @@ class Detail(NamedTuple):
     Attributes:
         nodes: theta_o nodes at which the lobe is evaluated (``LOBE_NODES``).
         sub: (alpha, phi) lobe points per stencil cell (``LOBE_SUB``; each divides 8).
+        rings: every ``rings``-th ring edge of ``RING_EDGES`` is kept (and the
+            last): 2 is a stencil of half the rings, which the stated errors
+            compare the default with (``fitter.fit._discretisation.ring_error``).
 
     ``Detail.finer()`` (193 nodes, 4 x 8 points) is about 4x the per-step lobe
     cost; the difference of a render with it estimates the default's error.
@@ -54,6 +57,7 @@ class Detail(NamedTuple):
 
     nodes: int = 97
     sub: tuple = (2, 4)
+    rings: int = 1
 
     @classmethod
     def finer(cls) -> Detail:
@@ -66,14 +70,20 @@ N_THETA = 129
 _FINE = 8  # sub-cells per cell side when tabulating
 
 
-def _cells(sub, sub_phi=None):
+def ring_edges(rings: int = 1) -> np.ndarray:
+    """Every ``rings``-th edge of ``RING_EDGES``, and the last (``Detail.rings``)."""
+    return RING_EDGES if rings == 1 else np.concatenate([RING_EDGES[:-1:rings],
+                                                         RING_EDGES[-1:]])
+
+
+def _cells(sub, sub_phi=None, rings: int = 1):
     """Sub-cells (``sub`` in alpha x ``sub_phi`` in phi per cell, consecutive) of the stencil
     about +z in (cos alpha, phi, d cos, d phi, cell id) and the number of cells: rings in
-    alpha (``RING_EDGES``), each cut into azimuthal sectors, one centred on phi = 0."""
+    alpha (``ring_edges``), each cut into azimuthal sectors, one centred on phi = 0."""
     sub_phi = sub if sub_phi is None else sub_phi
     ct, ph, dct, dph, cell = [], [], [], [], []
     n = 0
-    for a0, a1 in itertools.pairwise(RING_EDGES):
+    for a0, a1 in itertools.pairwise(ring_edges(rings)):
         mid = 0.5 * (a0 + a1)
         nphi = 1 if a0 == 0 else int(np.clip(round(2 * np.pi * np.sin(mid) / (a1 - a0)),
                                              MIN_PHI, MAX_PHI))
@@ -90,11 +100,11 @@ def _cells(sub, sub_phi=None):
     return tuple(np.array(a) for a in (ct, ph, dct, dph, cell)) + (n,)
 
 
-def _tables():
+def _tables(rings: int = 1):
     """Per cell and angle theta_o between n and r: Q = int_cell max(n.w, 0) dw, the unit
     direction of the cos-weighted centroid (local frame: r = +z, n in the xz plane) and
     the cell's angular size sqrt(solid angle)."""
-    ct, ph, dct, dph, cell, n = _cells(_FINE)
+    ct, ph, dct, dph, cell, n = _cells(_FINE, rings=rings)
     st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
     dw = dct * dph
     th = np.linspace(0.0, np.pi / 2, N_THETA)
@@ -115,12 +125,13 @@ def _tables():
 
 
 @functools.cache
-def _cached_tables():
+def _cached_tables(rings: int = 1):
     """``_tables``, built on first use (~0.2 s), not at import; kept on disk beside
     the compilation cache when that is on (``compilation_cache.cached_arrays``)."""
     from .compilation_cache import cached_arrays
 
-    return cached_arrays("sky-tables", repr((N_THETA, _FINE)), _tables)
+    key = (N_THETA, _FINE) if rings == 1 else (N_THETA, _FINE, rings)
+    return cached_arrays("sky-tables", repr(key), lambda: _tables(rings))
 
 
 #: Nodes in theta_o (0 .. pi/2, uniform) at which a lobe is evaluated on the stencil.
@@ -155,21 +166,22 @@ def _node_of(theta, nodes):
 
 
 @functools.cache
-def node_geometry(nodes: int = LOBE_NODES, sub: tuple = LOBE_SUB):
+def node_geometry(nodes: int = LOBE_NODES, sub: tuple = LOBE_SUB, rings: int = 1):
     """``_node_geometry``, kept on disk beside the compilation cache when that is
     on (``compilation_cache.cached_arrays``): ~0.3 s of NumPy a process."""
     from .bsdf.base import Cosines
     from .compilation_cache import cached_arrays
 
     def make():
-        cos, w = _node_geometry(nodes, tuple(sub))
+        cos, w = _node_geometry(nodes, tuple(sub), rings)
         return (*cos, w)
 
-    *cos, w = cached_arrays("sky-nodes", repr((nodes, tuple(sub), _FINE)), make)
+    key = (nodes, tuple(sub), _FINE) + (() if rings == 1 else (rings,))
+    *cos, w = cached_arrays("sky-nodes", repr(key), make)
     return Cosines(*cos), w
 
 
-def _node_geometry(nodes: int, sub: tuple):
+def _node_geometry(nodes: int, sub: tuple, rings: int = 1):
     """``Cosines`` (T, N, M) of M points per stencil cell at the theta_o nodes (cos_o
     (T, 1, 1): one per node) and the weights (T, N, M) by which the renderer sums
     a lobe there: cos_o x the point's share of the cell's Q = int max(cos_i, 0) dw. The points are the cos-weighted
@@ -183,7 +195,7 @@ def _node_geometry(nodes: int, sub: tuple):
     sa, sp = sub
     if _FINE % sa or _FINE % sp:
         raise ValueError(f"sub = {sub}: each must divide _FINE = {_FINE}")
-    ct, ph, dct, dph, cell, n_cells = _cells(_FINE)
+    ct, ph, dct, dph, cell, n_cells = _cells(_FINE, rings=rings)
     st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
     d = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1)
     dw = dct * dph
@@ -381,7 +393,7 @@ def _table_all(*args, rows):
 
 
 def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
-              chunk: int = 2048, dtype=np.float32):
+              chunk: int = 2048, dtype=np.float32, rings: int = 1):
     """Env samples in blocks (``blocks``) and their sky-stencil weights.
 
     ``normal``, ``view`` (S, 3): unit normal and unit direction to the camera
@@ -394,13 +406,14 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     (exact for a constant sky), and the 1/cos_o undoes the cos_o that
     ``node_geometry`` folds into the lobe (smooth up to the horizon).
 
+    ``rings``: the stencil's ring density (``Detail.rings``).
     ``dtype``: the tabulation runs in float32 by default (c is returned as
     float64 for the float64 sums): c only carries the sky's radiance and
     geometric weights, smooth in the sample's directions, so rounding them
     changes a render by at most 1.5e-6 relative (env_plastic, measured),
     1000x below the stencil's quadrature error, for ~25 % less tabulation time.
     """
-    q_tab, cen_tab, size_tab = _cached_tables()
+    q_tab, cen_tab, size_tab = _cached_tables(rings)
     flat, lh, lw, loff = _flat_levels(sky)
     lev = np.clip(np.log2(size_tab[0] / sky.texel), 0, len(sky.levels) - 1)  # theta-free
     lo = np.minimum(np.floor(lev).astype(np.int32), max(len(sky.levels) - 2, 0))

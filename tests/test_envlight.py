@@ -33,14 +33,18 @@ def test_lambert_under_a_constant_sky_is_rho_times_radiance():
                                                        inside.shape), rtol=1e-3)
 
 
-def test_stencil_integrates_the_cosine_exactly_for_any_view():
+@pytest.mark.parametrize("rings", [1, 2])
+def test_stencil_integrates_the_cosine_exactly_for_any_view(rings):
+    """int max(cos_i, 0) dw = pi (closed form), with the default rings and with
+    half of them (``Detail.rings``, the stated errors' comparison)."""
     rng = np.random.default_rng(0)
     n = rng.normal(size=(500, 3))
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     wo = rng.normal(size=(500, 3))
     wo /= np.linalg.norm(wo, axis=-1, keepdims=True)
     wo = np.where((np.sum(n * wo, -1) > 0)[:, None], wo, -wo)
-    order, _, _, c = envlight.sky_table(envlight.Pyramid(np.ones((2, 4, 3))), n, wo)
+    order, _, _, c = envlight.sky_table(envlight.Pyramid(np.ones((2, 4, 3))), n, wo,
+                                        rings=rings)
     c = c.reshape(order.size, 3, -1).sum(-1)[order >= 0, 0]  # int cos_i dw / cos_o
     cos_o = np.sum(n * wo, -1)[order[order >= 0]]
     np.testing.assert_allclose(c * cos_o, np.pi, rtol=1e-3)
@@ -292,6 +296,6 @@ def test_the_sky_detail_is_made_per_call(monkeypatch):
     """``env_lights``'s default discretisation is ``Detail()`` at call time, so the
     accuracy study (``benchmarks/envlight.py``) can vary it (a default made once at
     import had left its variants silently equal to the default)."""
-    monkeypatch.setattr(envlight.Detail.__new__, "__defaults__", (49, (1, 2)))
+    monkeypatch.setattr(envlight.Detail.__new__, "__defaults__", (49, (1, 2), 2))
     lights = envlight.env_lights("constant", np.zeros((2, 4, 3)), np.array([1.0, 1.0, 1.0]))
-    assert lights.detail == envlight.Detail(49, (1, 2))
+    assert lights.detail == envlight.Detail(49, (1, 2), 2)

@@ -244,9 +244,12 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     diff = finer + (model - coarse) * (coverage / np.maximum(seen, 1e-300))[:, None] - model
     diff = np.where(covered[:, None], diff, 0.0)
     sky = _discretisation.sky_stencil_error(data, params, spec.material, spec.env_type)
+    rings = np.zeros_like(model)
+    if data.geometry.has_sky:
+        rings[rows] = _discretisation.ring_error(problem, params, rows, (model - coarse)[rows])
     # One least-squares solve for every shift; independent, they add in quadrature.
     deltas = _discretisation.shift(Js, np.stack(
-        [(diff * w * scale[:, None]).reshape(-1)]
+        [(diff * w * scale[:, None]).reshape(-1), (rings * w * scale[:, None]).reshape(-1)]
         + [(s * np.asarray(data.weights, dtype=np.float64)).reshape(-1) for s in sky], axis=1))
     cov_disc = deltas @ deltas.T
     info["discretisation"] = {
