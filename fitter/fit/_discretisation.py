@@ -402,10 +402,13 @@ def sky_stencil_error(data, params, material, env_type) -> np.ndarray:
 #: The sky stencil's rings (``skystencil.RING_EDGES``) against half of them
 #: (``Detail.rings`` = 2): their midpoint rule's error falls as the square of the
 #: ring width, so the default's is estimated as the difference / (2^2 - 1)
-#: (Richardson). Fits at half the rings moved the same way as the default's errors
-#: against Mitsuba, 2-4x as far: env_plastic eta 1.4953 -> 1.4858 (truth 1.5),
-#: env_point eta 1.5965 -> 1.5839 (1.6), env_oren_nayar sigma 0.3585 -> 0.4111
-#: (0.35), rho_d likewise.
+#: (Richardson). Against Mitsuba at 4096 spp (benchmarks/README.md, envlight) the
+#: Torrance-Sparrow term's mean error is -0.11 % and -0.45 % at half the rings
+#: (4.1x: second order; the estimate, 0.34 % / 3, is the error), Lambert's -0.12 %
+#: and -0.79 % (the estimate 0.22 %, twice it). Fits at half the rings moved the
+#: same way as the default's errors, 2-4x as far: env_plastic eta 1.4953 -> 1.4858
+#: (truth 1.5), env_point eta 1.5965 -> 1.5839 (1.6), env_oren_nayar sigma 0.3585
+#: -> 0.4111 (0.35), rho_d likewise.
 RING_RICHARDSON = 3.0
 #: ``ring_error`` renders every this many-th of the sampled pixels (each standing
 #: for this many): the ring error is smooth over the sphere, and its half-ring sky
