@@ -442,10 +442,10 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
     env64 = load_environment(scene.environment, problem.base_dir)
     lighting = (_half_rings(scene, env64) if envlight.lit_by_environment(scene, material)
                 else None)
-    if lighting is None:
+    pick = np.arange(0, len(rows), RING_STRIDE)
+    if lighting is None or not pick.size:
         return np.zeros(np.shape(sky))
     dark = scene.replace(lights=())  # the sky term alone: no lights, no sun, no background
-    pick = np.arange(0, len(rows), RING_STRIDE)
     flat = np.asarray(r.pixel_index)[problem.rows][np.asarray(rows)[pick]]
     geo, found, _ = _geometry(dark, env64, lighting, flat, env_type, _geometry_key(
         dark, problem.base_dir, env_type, ("rings", 2), flat))
