@@ -251,6 +251,15 @@ def test_one_start_profile_finds_a_flat_valley(monkeypatch):
     assert len(old.starts) == 1 and "torrance_sparrow.m" not in old.unidentifiable
 
 
+def _oren_nayar_at_sigma_0():
+    """(scene, truth, target): Oren-Nayar at sigma = 0, two lights, noise 0.002."""
+    lights = LIGHTS + (fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0)),)
+    scene = SCENE.replace(lights=lights)
+    truth = {"oren_nayar.rho_d": [0.5, 0.45, 0.4], "oren_nayar.sigma": 0.0}
+    clean = np.asarray(fitter.render(truth, scene, "oren_nayar"))
+    return scene, truth, clean + np.random.default_rng(0).normal(0.0, 0.002, clean.shape)
+
+
 def test_a_parameter_the_image_rejects_at_its_start_is_held_where_the_fit_put_it():
     """Oren-Nayar at sigma = 0 (= Lambert, the box's edge): the model's slope in
     sigma vanishes there, so its linearised error exceeds its box and it is
@@ -258,11 +267,7 @@ def test_a_parameter_the_image_rejects_at_its_start_is_held_where_the_fit_put_it
     off by ~0.04); the image rejects that value (chi^2 rises by ~1e4), so it is
     held at the fit's value (~0) and rho_d is recovered within 3 stated errors
     of the truth (reference: the rendering's own truth, noise 0.002)."""
-    lights = LIGHTS + (fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0)),)
-    scene = SCENE.replace(lights=lights)
-    truth = {"oren_nayar.rho_d": [0.5, 0.45, 0.4], "oren_nayar.sigma": 0.0}
-    clean = np.asarray(fitter.render(truth, scene, "oren_nayar"))
-    target = clean + np.random.default_rng(0).normal(0.0, 0.002, clean.shape)
+    scene, truth, target = _oren_nayar_at_sigma_0()
     r = fitter.fit(target, scene, "oren_nayar")
     assert r.status == "converged", r.message
     assert r.unidentifiable == ["oren_nayar.sigma"] and "oren_nayar.sigma" not in r.stderr
@@ -281,11 +286,7 @@ def test_a_parameter_marked_after_the_last_refit_round_is_not_said_to_be_held(mo
     from fitter.fit import _drivers
 
     monkeypatch.setattr(_drivers, "MAX_REFITS", 0)
-    lights = LIGHTS + (fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0)),)
-    scene = SCENE.replace(lights=lights)
-    truth = {"oren_nayar.rho_d": [0.5, 0.45, 0.4], "oren_nayar.sigma": 0.0}
-    clean = np.asarray(fitter.render(truth, scene, "oren_nayar"))
-    target = clean + np.random.default_rng(0).normal(0.0, 0.002, clean.shape)
+    scene, _, target = _oren_nayar_at_sigma_0()
     r = fitter.fit(target, scene, "oren_nayar")
     assert r.unidentifiable == ["oren_nayar.sigma"] and "oren_nayar.sigma" not in r.stderr
     assert "oren_nayar.sigma" in r.free  # fitted, not held
