@@ -42,6 +42,17 @@ def _chi2(res, s2):
     return 2.0 * res.cost / s2
 
 
+def _model_target():
+    """(scene, target): the model's own render of extreme_sigma0's material at
+    sigma = 0 (128^2, two lights) plus white noise of 0.002."""
+    lights = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),
+              fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0)))
+    scene = fitter.Scene(width=128, height=128, supersampling=4, lights=lights)
+    clean = np.asarray(fitter.render({"oren_nayar.rho_d": [0.5, 0.45, 0.4], KEY: 0.0},
+                                     scene, "oren_nayar"))
+    return scene, clean + np.random.default_rng(0).normal(0.0, 0.002, clean.shape)
+
+
 def test_a_best_fit_on_the_edge_is_refit_there_and_stated_one_sided(case):
     target, scene, mat, truth, base = case
     res = fitter.fit(target, scene, mat, base_dir=base)
@@ -71,12 +82,7 @@ def test_on_a_target_the_model_made_the_edge_is_stated_from_the_profile():
     0.60 for sigma (its systematic part read the stopping point's misfit as
     structure); on the edge the residual is white, and sigma's stated error is
     the profile's (exact refits: chi^2 +1 at twice its statistical part)."""
-    lights = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),
-              fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0)))
-    scene = fitter.Scene(width=128, height=128, supersampling=4, lights=lights)
-    truth = {"oren_nayar.rho_d": [0.5, 0.45, 0.4], KEY: 0.0}
-    clean = np.asarray(fitter.render(truth, scene, "oren_nayar"))
-    target = clean + np.random.default_rng(0).normal(0.0, 0.002, clean.shape)
+    scene, target = _model_target()
     res = fitter.fit(target, scene, "oren_nayar")
     assert res.status == "converged" and res.params[KEY] == 0.0, res.message
     assert res.stderr[KEY] < 2.0 * res.stderr_stat[KEY], (res.stderr, res.stderr_stat)
@@ -99,3 +105,13 @@ def test_without_the_edge_refit_the_fit_stops_short_of_the_edge_and_fits_worse(c
     monkeypatch.undo()
     pinned = fitter.fit(target, scene, mat, base_dir=base)
     assert pinned.cost < stopped.cost
+
+
+def test_a_batch_target_out_of_steps_short_of_the_edge_is_refit_alone():
+    """``fit_batch`` does not refit inside its shared solve; a target out of
+    steps with a value near an edge is fitted alone, as ``fit`` does it."""
+    scene, target = _model_target()
+    (res,) = fitter.fit_batch(target[None], scene, "oren_nayar")
+    alone = fitter.fit(target, scene, "oren_nayar")
+    assert res.status == alone.status == "converged" and res.params[KEY] == 0.0
+    assert res.stderr[KEY] == pytest.approx(alone.stderr[KEY])

@@ -332,7 +332,8 @@ def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
                       identifiability=identifiability, t_start=time.perf_counter(),
                       t_compile=t_compile, starts=[], refit=False,
                       jr=(r_factor(R[b]), np.asarray(r[b], dtype=np.float64)))
-        if identifiability and res is None:  # became unidentifiable: refit alone
+        # became unidentifiable, or out of steps short of a box edge: refit alone
+        if identifiability and (res is None or _edge.candidate(problem.spec, res)):
             res = fit(targets[b], scene, material, identifiability=True, **kwargs)
         else:
             res = dataclasses.replace(res, time_run=res.time_run + share,

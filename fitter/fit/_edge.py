@@ -78,6 +78,19 @@ def one_sided(spec, data, key: str, bound: float, values: dict, J_other, r_edge,
     return float(bound + side * (d0 + (1.0 - lo) / (hi - lo) * (d1 - d0)))
 
 
+def candidate(spec, res):
+    """(key, edge) of the scalar value ``pin`` would hold on the edge of its box,
+    for a ``FitResult`` out of steps, or None: the one within its stated error
+    of an edge and nearest it in stated errors, where another is left to refit."""
+    if res.status != "max_steps" or len(spec.blocks) < 2:
+        return None
+    sd = np.concatenate([np.full(blk.size, res.stderr.get(blk.key, 0.0), dtype=np.float64)
+                         for blk in spec.blocks])
+    near = [(abs(res.params[blk.key] - bound) / max(e, 1e-300), blk.key, float(bound))
+            for blk, bound, e in near_bounds(spec, res.params, sd) if blk.size == 1]
+    return min(near)[1:] if near else None
+
+
 def pin(problem, b: int, stopped, cost: float, solve_starts, finish, say, t_start: float,
         t_compile: float, starts: list):
     """The fit ``stopped`` (a ``FitResult`` out of steps, at cost ``cost``)
@@ -92,14 +105,10 @@ def pin(problem, b: int, stopped, cost: float, solve_starts, finish, say, t_star
     another to refit.
     """
     spec, data = problem.spec, problem.data(b)
-    sd = np.concatenate([np.full(blk.size, stopped.stderr.get(blk.key, 0.0), dtype=np.float64)
-                         for blk in spec.blocks])
-    near = [(abs(stopped.params[blk.key] - bound) / max(e, 1e-300), blk, bound)
-            for blk, bound, e in near_bounds(spec, stopped.params, sd) if blk.size == 1]
-    if not near or len(spec.blocks) < 2:
+    edge = candidate(spec, stopped)
+    if edge is None:
         return None
-    _, blk, bound = min(near, key=lambda n: n[0])
-    key, bound = blk.key, float(bound)
+    key, bound = edge
     pinned = problem.pinned({key: bound}, [])
     pdata = pinned.data(b)
     z0 = z_from_params(pinned.spec, {**pinned.init_full, **{
