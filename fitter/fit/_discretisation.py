@@ -372,31 +372,43 @@ def coarse_without_sky(data, params, material, env_type, model) -> np.ndarray:
                    data.sphere, material, env_type)
 
 
-def sky_stencil_error(data, params, material, env_type) -> np.ndarray:
-    """Stated bounds of the sky stencil's error (k, P, 3), one per kind of lobe
-    the environment lights, taken as independent: ``SKY_STENCIL_ACCURACY`` times
-    the fitted sky term of the opaque lobes other than Lambert, and
-    ``IRRADIANCE_ACCURACY`` times Lambert's; (0, P, 3) when it lights none."""
-    geo = data.geometry
-    brdf = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
-    groups = [(names, accuracy) for names, accuracy in (
-        ([n for n in brdf if n != "lambert"], SKY_STENCIL_ACCURACY),
-        ([n for n in brdf if n == "lambert"], IRRADIANCE_ACCURACY)) if names]
-    if not (groups and geo.has_sky):
-        return np.zeros((0,) + np.shape(geo.background))
-    dark = geo._replace(  # no lights, no sun, no background: the sky term alone
+def _lobes(material, names) -> Material:
+    """``material``'s lobes ``names`` alone, with their options (no exposure)."""
+    return Material.make(names, {k: v for k, v in material.options
+                                 if k.split(".")[0] in names})
+
+
+def _sky_term(params, geo, env, sphere, material, names, env_type) -> np.ndarray:
+    """The sky term (P, 3) of ``material``'s lobes ``names`` on ``geo``, its
+    lights, sun cells and background dropped, times the exposure if any.
+    ``params``: complete parameters, as ``_render`` takes them."""
+    dark = geo._replace(
         cosines=type(geo.cosines)(*(a[:0] for a in geo.cosines)),
         light_weight=geo.light_weight[:0], light_color=geo.light_color[:0], sun=(),
         background=to_device(np.zeros(np.shape(geo.background)), geo.background.dtype))
+    sky = _render(params, dark, env, sphere, _lobes(material, names), env_type)
+    return sky * float(params[EXPOSURE_KEY]) if material.exposure else sky
+
+
+def sky_stencil_error(data, params, material, env_type, sky) -> np.ndarray:
+    """Stated bounds of the sky stencil's error (k, P, 3), one per kind of lobe
+    the environment lights, taken as independent: ``SKY_STENCIL_ACCURACY`` times
+    the fitted sky term of the opaque lobes other than Lambert, and
+    ``IRRADIANCE_ACCURACY`` times Lambert's; (0, P, 3) when it lights none.
+    ``sky`` (P, 3): the fitted sky term of every opaque lobe (the model minus
+    ``coarse_without_sky``); Lambert's is what the others' leave of it."""
+    geo = data.geometry
+    brdf = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
+    glossy = [n for n in brdf if n != "lambert"]
+    if not (brdf and geo.has_sky):
+        return np.zeros((0,) + np.shape(geo.background))
     out = []
-    for names, accuracy in groups:
-        opts = {k: v for k, v in material.options if k.split(".")[0] in names}
-        sky = _render(_params(data, params), dark, data.env, data.sphere,
-                      Material.make(names, opts), env_type)
-        if material.exposure:
-            sky = sky * float(params[EXPOSURE_KEY])
-        out.append(accuracy * sky)
-    return np.stack(out)
+    if glossy:
+        out.append(_sky_term(_params(data, params), geo, data.env, data.sphere, material,
+                             glossy, env_type))
+    lambert = [np.asarray(sky, dtype=np.float64) - sum(out)] if "lambert" in brdf else []
+    return np.stack([SKY_STENCIL_ACCURACY * g for g in out]
+                    + [IRRADIANCE_ACCURACY * g for g in lambert])
 
 
 #: The sky stencil's rings (``skystencil.RING_EDGES``) against half of them
@@ -425,10 +437,6 @@ def _half_rings(scene, env64):
         sun_dir=np.zeros((0, 3)), sun_irradiance=np.zeros((0, 3)))
 
 
-def _zeros_like(a):
-    return to_device(np.zeros(np.shape(a)), a.dtype)
-
-
 def ring_error(problem, params, rows, sky) -> np.ndarray:
     """The sky term's ring-discretisation error at the fitted pixels ``rows``
     (M, 3): (``sky`` - the same at half the rings) / ``RING_RICHARDSON`` at every
@@ -445,17 +453,13 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
     pick = np.arange(0, len(rows), RING_STRIDE)
     if lighting is None or not pick.size:
         return np.zeros(np.shape(sky))
-    dark = scene.replace(lights=())  # the sky term alone: no lights, no sun, no background
+    dark = scene.replace(lights=())  # no point lights to trace: the sky term alone
     flat = np.asarray(r.pixel_index)[problem.rows][np.asarray(rows)[pick]]
     geo, found, _ = _geometry(dark, env64, lighting, flat, env_type, _geometry_key(
         dark, problem.base_dir, env_type, ("rings", 2), flat))
-    geo = geo._replace(background=_zeros_like(geo.background))
-    opts = {k: v for k, v in material.options if k.split(".")[0] in brdf}
     half = np.zeros((pick.size, 3))
-    half[found] = _render(_host_params(params), geo, env64, _sphere(scene),
-                          Material.make(brdf, opts), env_type)
-    if material.exposure:
-        half = half * float(params[EXPOSURE_KEY])
+    half[found] = _sky_term(_host_params(params), geo, env64, _sphere(scene), material, brdf,
+                            env_type)
     out = np.zeros(np.shape(sky))
     out[pick] = (np.asarray(sky, dtype=np.float64)[pick] - half) * (RING_STRIDE / RING_RICHARDSON)
     out[pick[~found]] = 0.0

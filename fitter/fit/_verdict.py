@@ -243,10 +243,12 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     w = np.asarray(data.weights, dtype=np.float64) * covered[:, None]
     diff = finer + (model - coarse) * (coverage / np.maximum(seen, 1e-300))[:, None] - model
     diff = np.where(covered[:, None], diff, 0.0)
-    sky = _discretisation.sky_stencil_error(data, params, spec.material, spec.env_type)
+    sky_term = model - coarse  # every opaque lobe's sky term (0 without a sky table)
+    sky = _discretisation.sky_stencil_error(data, params, spec.material, spec.env_type,
+                                            sky_term)
     rings = np.zeros_like(model)
     if data.geometry.has_sky:
-        rings[rows] = _discretisation.ring_error(problem, params, rows, (model - coarse)[rows])
+        rings[rows] = _discretisation.ring_error(problem, params, rows, sky_term[rows])
     # One least-squares solve for every shift; independent, they add in quadrature.
     deltas = _discretisation.shift(Js, np.stack(
         [(diff * w * scale[:, None]).reshape(-1), (rings * w * scale[:, None]).reshape(-1)]
