@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._compile import jac_full, r_factor, residuals_at_points
+from ._compile import jac_full, r_factor, remember_jacobian, residuals_at_points
 from ._covariance import residual_variance
 from ._identify import PROFILE_RESOLUTION, rounding_rise
 from ._problem import format_value, user_values, z_from_params
@@ -124,7 +124,8 @@ def pin(problem, b: int, stopped, cost: float, solve_starts, finish, say, t_star
             or rounding_rise(pdata, r, s2) > PROFILE_RESOLUTION):
         return None
     values = user_values(pinned.spec, z_p, pdata.fixed)
-    J_other, _, tc = jac_full(pinned.spec, z_p, pdata)
+    J_other, r_other, tc = jac_full(pinned.spec, z_p, pdata)
+    remember_jacobian(pinned.spec, z_p, pdata, J_other, r_other)  # the verdict's, too
     t_compile += tc
     x1 = one_sided(spec, data, key, bound, values, J_other, r, s2)
     if x1 is None:
