@@ -130,6 +130,7 @@ def _cached_tables(rings: int = 1):
     the compilation cache when that is on (``compilation_cache.cached_arrays``)."""
     from .compilation_cache import cached_arrays
 
+    # (all rings: the key tables stored before ``rings`` existed have)
     key = (N_THETA, _FINE) if rings == 1 else (N_THETA, _FINE, rings)
     return cached_arrays("sky-tables", repr(key), lambda: _tables(rings))
 
