@@ -16,6 +16,7 @@ way, interleaved; the table gives the minima, the verdicts and the largest
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 import time
@@ -48,6 +49,16 @@ def _dielectric():
                               base_dir=job.base_dir)
 
 
+def _env(case: str):
+    import fitter
+    from fitter import config, pipeline
+
+    job = config.load_config(os.path.join(ROOT, f"configs/{case}.toml"))
+    target, _ = pipeline.read_target(job.fit.target, job.scene)
+    return lambda: fitter.fit(target, job.scene, job.material, init=job.init, fixed=job.fixed,
+                              base_dir=job.base_dir)
+
+
 def rises(args, subset: bool):
     """(chi^2 rises at the profile's points, the verdict, seconds)."""
     from fitter.fit import _compile, _identify, _profile
@@ -66,13 +77,26 @@ def rises(args, subset: bool):
         seen["rise"] = np.array([2 * (c - cost) / s2 for _, _, c in profile])
         return verdict(s2, cost, profile)
 
+    estimate = _profile.estimated_rises
+
+    def spy_se(*a, **k):
+        seen["se"] = estimate(*a, **k)[1]
+        return estimate(*a, **k)
+
     _identify.profile_verdict = spy
+    _profile.estimated_rises = spy_se
     try:
         why, _, sec = _identify.weak_profile(*args)
     finally:
         _identify.profile_verdict = verdict
+        _profile.estimated_rises = estimate
         _profile.ENABLED = True
+    SE[subset] = seen.get("se")
     return seen.get("rise", np.zeros(0)), why, sec
+
+
+#: The last profile's estimated standard errors (by subset on/off), for the table.
+SE: dict = {}
 
 
 def main(argv=None) -> int:
@@ -83,7 +107,9 @@ def main(argv=None) -> int:
 
     from fitter.fit import _drivers, _profile
 
-    makers = {"plastic 256²": _plastic, "dielectric 128²": _dielectric}
+    makers = {"plastic 256²": _plastic, "dielectric 128²": _dielectric,
+              **{f"{c} 128²": functools.partial(_env, c)
+                 for c in ("env_plastic", "env_phong", "env_oren_nayar", "env_point")}}
     for name in args.cases:
         run = makers[name]()
         captured: list = []
@@ -124,12 +150,16 @@ def main(argv=None) -> int:
                     p_sub = out.params
                 else:
                     p_full = out.params
+        se = SE.get(True)
+        guarded = (np.max(np.abs(est - full) / np.hypot(se, _profile.SE_FLOOR))
+                   if se is not None and len(se) == len(full) else float("nan"))
         same = all(np.array_equal(np.asarray(p_sub[k]), np.asarray(p_full[k])) for k in p_sub)
         print(f"{name}: {len(full)} points; profile stage min {min(times[False]):.3f} s "
               f"(every pixel) -> {min(times[True]):.3f} s (subset), "
               f"x{min(times[False]) / min(times[True]):.1f}; verdict {why_full!r} / "
               f"{why_sub!r}; max |rise est - rise| {np.max(np.abs(est - full)):.3g} "
-              f"(rises {np.min(full):.3g}..{np.max(full):.3g}); fitter.fit min "
+              f"(rises {np.min(full):.3g}..{np.max(full):.3g}; {guarded:.2f} guarded standard "
+              f"errors); fitter.fit min "
               f"{min(fits[False]):.3f} -> {min(fits[True]):.3f} s; fitted values equal: {same}")
     load = os.getloadavg()
     print(f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores")

@@ -10,9 +10,11 @@ carry per-sample arrays; the others are pure background.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ._math import to_device
@@ -27,6 +29,16 @@ _LOOKUP = jax.jit(lookup, static_argnums=0, compiler_options=FAST_COMPILE)
 #: The sky irradiance's sum as one executable: op by op, its dozen ops were compiled
 #: one by one on every first run (~0.5 s).
 _SKY_SUM = jax.jit(sky_sum)
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _slabs(c, src, real, block: int):
+    """Rows of the sky table ``c`` (nb, B x 3, N) of the samples ``src`` (R,), zero
+    where not ``real``, as (R / B, B x 3, N): gathered where the table is (the
+    device), not copied to the host whole."""
+    n = c.shape[-1]
+    slabs = jnp.take(c.reshape(-1, 3, n), src, axis=0)
+    return jnp.where(real[:, None, None], slabs, 0.0).reshape(-1, 3 * block, n)
 
 
 class Geometry(NamedTuple):
@@ -104,9 +116,12 @@ class Geometry(NamedTuple):
         """Whether the environment's sky term lights these pixels (a sky table)."""
         return bool(self.env_color.shape[0] and self.env_color.shape[1])
 
-    def subset(self, rows: np.ndarray) -> "Geometry":
-        """The geometry of the active pixels ``rows`` only (NumPy arrays; the env
-        samples' blocks are shared, not copied)."""
+    def subset(self, rows: np.ndarray, own_samples: bool = False) -> "Geometry":
+        """The geometry of the active pixels ``rows`` only (NumPy arrays).
+
+        The env samples' blocks are shared, not copied, unless ``own_samples``:
+        then the samples of ``rows`` alone are blocked anew with their rows of
+        the sky table (``_own_samples``), so a render sums only theirs."""
         per_light = lambda a: np.asarray(a)[:, rows]  # noqa: E731
         pick = lambda a: np.asarray(a)[rows]  # noqa: E731
         # One entry past the last row: a subset's samples of dropped pixels point there.
@@ -121,8 +136,10 @@ class Geometry(NamedTuple):
                      Cosines(*(np.asarray(a)[:, inv[np.asarray(i)] >= 0] for a in cs)),
                      np.asarray(wt)[:, inv[np.asarray(i)] >= 0], np.asarray(col))
                     for i, cs, wt, col in self.sun)
+        env = (_own_samples(self, env_rows, len(rows)) if own_samples and self.has_sky
+               else {"env_index": env_rows})
         return self._replace(
-            sun=sun, env_index=env_rows, sample_weight=np.asarray(self.sample_weight),
+            sun=sun, **env, sample_weight=np.asarray(self.sample_weight),
             light_color=np.asarray(self.light_color), **self._pixels(pick, per_light))
 
     def take(self, rows) -> "Geometry":
@@ -142,6 +159,43 @@ class Geometry(NamedTuple):
             position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
             cosines=Cosines(*(per_light(a) for a in self.cosines)),
             light_weight=per_light(self.light_weight), background=pick(self.background))
+
+
+#: Samples per block of a subset's own sky table (``Geometry.subset(own_samples=True)``):
+#: a subset's few samples spread over every theta_o window, so blocks of the
+#: table's 256 were half padding. env_plastic's cost-profile subset (~5 k samples):
+#: 39 blocks of 256, 54 of 128 or 91 of 64 (10.0 k, 6.9 k, 5.8 k rows), the same
+#: time per pass (51-55 ms for 6 points), the smallest gather at 64.
+SUBSET_BLOCK = 64
+
+
+def _own_samples(geo: Geometry, env_rows, n_rows: int) -> dict:
+    """The env fields of the samples of pixel rows 0 .. ``n_rows`` - 1 only
+    (``env_rows``: each sample's new row), blocked anew (``envlight.blocks``)
+    with their rows of the sky table; padded to 2^(k/8) blocks, so that one
+    compile serves subsets of similar size. Values equal the whole's bit for
+    bit: ``blocks`` keeps each sample's hat weights exact, and a sample's
+    products with its cells are the same whichever block holds it."""
+    from .envlight import blocks
+
+    window, pos = np.asarray(geo.env_node), np.asarray(geo.env_frac)
+    nb, s = window.shape
+    b = pos.size // max(nb, 1)
+    lower = np.minimum(np.floor(pos), s - 2).astype(np.int64)
+    node = window[np.arange(pos.size) // b, lower]
+    keep = np.nonzero((env_rows >= 0) & (env_rows < n_rows))[0]
+    block = SUBSET_BLOCK
+    order, window, pos = blocks(node[keep], (pos - lower)[keep], geo.env_node_weight.shape[0],
+                                block=block, window=s)
+    size = int(np.ceil(2.0 ** (np.ceil(8.0 * np.log2(max(window.shape[0], 1))) / 8.0)))
+    pad = size - window.shape[0]
+    order = np.concatenate([order, np.full(pad * block, -1)])
+    src = keep[np.maximum(order, 0)]
+    return dict(env_index=np.where(order < 0, -1, env_rows[src]),
+                env_node=np.concatenate([window, np.broadcast_to(np.arange(s, dtype=window.dtype),
+                                                                 (pad, s))]),
+                env_frac=np.concatenate([pos, np.zeros(pad * block)]),
+                env_color=_slabs(geo.env_color, src, order >= 0, block))
 
 
 def intersect_sphere(o, d, center, radius):

@@ -181,6 +181,16 @@ def test_geometry_of_a_pixel_subset_equals_those_pixels_of_the_whole(sun_probe):
     first = whole.subset(rows)
     again = first.subset(np.arange(0, len(rows), 3))
     np.testing.assert_allclose(values(again), values(whole)[rows[::3]], rtol=1e-12, atol=1e-15)
+    # With its own samples (the cost profile's subset): only theirs blocked anew, and
+    # the same values bit for bit as the subset sharing the whole table.
+    own = whole.subset(rows, own_samples=True)
+    assert own.env_color.shape[0] * own.env_color.shape[1] < whole.env_color.shape[0] * \
+        whole.env_color.shape[1]
+    kept = np.asarray(own.env_index)
+    assert np.all(kept[kept >= 0] < len(rows))
+    np.testing.assert_array_equal(values(own), values(first))
+    own_again = own.subset(np.arange(0, len(rows), 3), own_samples=True)
+    np.testing.assert_array_equal(values(own_again), values(again))
 
 
 def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):

@@ -39,6 +39,22 @@ def test_estimate_is_exact_for_linear_residuals():
     np.testing.assert_allclose(se, 0.0, atol=1e-8 * np.abs(exact).max())
 
 
+def test_rim_stride_weights_each_rim_pick_by_its_stratum():
+    """Every ``rim_stride``-th rim pixel (label 2), each standing for the rim
+    pixels per pick; highlights (1) and standing-out pixels (3) stay whole.
+    Reference: each stratum's pixel count (a Horvitz-Thompson sum of 1s) and
+    the picks counted by hand."""
+    labels = np.array([0] * 200 + [1] * 30 + [2] * 101 + [3] * 5)
+    rows, weight = _profile.subset_rows(labels, stride=16, rim_stride=4)
+    lab = labels[rows]
+    for stratum, count, picked in ((0, 200, 13), (1, 30, 30), (2, 101, 26), (3, 5, 5)):
+        real = (lab == stratum) & (weight > 0)
+        assert real.sum() == picked, stratum
+        np.testing.assert_allclose(weight[real].sum(), count, rtol=1e-12)
+    np.testing.assert_array_equal(rows[(lab == 2) & (weight > 0)],
+                                  np.arange(230, 331)[::4])
+
+
 def _profile_inputs(monkeypatch, eta: float):
     """Fit a 64^2 lambert + torrance_sparrow sphere (eta given) with the subset
     forced on; return the fit and the profile's inputs at its first solution,
