@@ -124,8 +124,9 @@ def test_newton_step_is_the_least_squares_step():
     assert np.all(_identify.newton_step(R, np.full(4, np.nan)) == 0.0)
 
 
-@pytest.mark.parametrize("res, profiled", [(32, [False]), (64, [])])
-def test_noiseless_target_is_not_re_solved(monkeypatch, res, profiled):
+@pytest.mark.parametrize("res, profiled, atol", [(32, [False], None), (64, [], 1e-8),
+                                                 (64, [True], None)])
+def test_noiseless_target_is_not_re_solved(monkeypatch, res, profiled, atol):
     """A target rendered by the model itself at the truth (no noise): the
     residuals at the solution are rounding (~1e-16), so a profile point's
     chi^2 rise against them says nothing. The fit must stay at its one start
@@ -135,9 +136,11 @@ def test_noiseless_target_is_not_re_solved(monkeypatch, res, profiled):
     32^2, the whole image's path (``profiled`` = [False]; residuals ~1e-12
     where the solver stopped): fails without the profile centred on the
     Gauss-Newton minimum (~40 stated errors away: rises -30 and +48 at -+3).
-    64^2: the rounding estimate skips the profile (``rounding_rise``,
-    ``profiled`` = []); with ``ROUNDING_ULPS`` = 0 the subset's points "fall"
-    by chi^2 ~1e4 and it fails."""
+    64^2 with atol = 1e-8 (the solver goes on to residuals ~1e-16): the
+    rounding estimate skips the profile (``rounding_rise``, ``profiled`` =
+    []); with ``ROUNDING_ULPS`` = 0 the subset's points "fall" by chi^2 ~1e4
+    and it fails. 64^2 with the default atol (1e-7: one step fewer, residuals
+    ~1e-12): the subset's profile runs, centred on the Gauss-Newton minimum."""
     monkeypatch.setattr(_profile, "MIN_PIXELS", 0 if res == 64 else 10**9)
     used = []
     real = _profile.subset_costs
@@ -154,7 +157,8 @@ def test_noiseless_target_is_not_re_solved(monkeypatch, res, profiled):
              "torrance_sparrow.eta": 1.5}
     target = np.asarray(fitter.render(truth, scene, mat))
     res_ = fitter.fit(target, scene, mat, init={"torrance_sparrow.m": 0.3,
-                                                "torrance_sparrow.eta": 1.3})
+                                                "torrance_sparrow.eta": 1.3},
+                      **({} if atol is None else {"atol": atol}))
     assert used == profiled, used
     assert res_.status == "converged", res_.message
     assert len(res_.starts) == 1 and not res_.warnings, res_.warnings

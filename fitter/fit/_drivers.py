@@ -34,6 +34,7 @@ from ._identify import (WEAK_EIG, ambiguous, chi2_1dof_level, dead_columns, unid
 from ._problem import blocks_of, format_value, user_values, z_from_params
 from ._search import cheapened, searched
 from ._setup import START_MARGIN, FitError, Problem
+from ._solvers import ATOL, RTOL
 from ._starts import starts as make_starts
 from ._verdict import all_held, report, start_status
 from .result import FitResult
@@ -109,7 +110,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         solver: str = "levenberg_marquardt", mask="interior", exclude=None, weights=None,
         noise_sigma: float | None = None, loss: str = "l2", loss_scale: float | None = None,
         saturation: float | None = None, n_starts: int = 1, max_steps: int | None = None,
-        rtol: float = 1e-6, atol: float = 1e-8, dtype=jnp.float64,
+        rtol: float = RTOL, atol: float = ATOL, dtype=jnp.float64,
         base_dir: str | None = None, identifiability: bool = True,
         progress: Callable[[str], None] | None = None) -> FitResult:
     """Fit the material's parameters to a target image.

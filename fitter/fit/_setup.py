@@ -20,7 +20,7 @@ from . import _args
 from ._args import FitError as FitError
 from ._noise import estimate_noise
 from ._problem import LOSSES, Block, Data, Spec, z_from_params
-from ._solvers import SOLVERS, default_max_steps
+from ._solvers import ATOL, RTOL, SOLVERS, default_max_steps
 
 #: Starts on a box edge (e.g. the default attenuation 1) are moved this fraction
 #: of the range inside: on the edge the coordinate is saturated and the
@@ -208,7 +208,7 @@ class Problem:
     def make(cls, targets, scene, material, *, init=None, fixed=None, bounds=None,
              solver="levenberg_marquardt", mask="interior", exclude=None, weights=None,
              noise_sigma=None, loss="l2", loss_scale=None, saturation=None, max_steps=None,
-             rtol=1e-6, atol=1e-8, dtype=jnp.float64, base_dir=None) -> Problem:
+             rtol=RTOL, atol=ATOL, dtype=jnp.float64, base_dir=None) -> Problem:
         """Check the arguments of ``fit`` (``_args``) and set up targets (B, H, W, 3)."""
         scene = _args.scene_of(scene)
         material = material if isinstance(material, Material) else Material.make(material)
