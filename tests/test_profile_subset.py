@@ -39,15 +39,15 @@ def test_estimate_is_exact_for_linear_residuals():
     np.testing.assert_allclose(se, 0.0, atol=1e-8 * np.abs(exact).max())
 
 
-def test_rim_stride_weights_each_rim_pick_by_its_stratum():
-    """Every ``rim_stride``-th rim pixel (label 2), each standing for the rim
-    pixels per pick; highlights (1) and standing-out pixels (3) stay whole.
-    Reference: each stratum's pixel count (a Horvitz-Thompson sum of 1s) and
-    the picks counted by hand."""
+def test_strides_weight_each_pick_by_its_stratum():
+    """Every 16th body, 2nd highlight and 4th rim pixel (labels 0, 1, 2), each
+    standing for its stratum's pixels per pick; standing-out pixels (3) stay
+    whole. Reference: each stratum's pixel count (a Horvitz-Thompson sum of
+    1s) and the picks counted by hand."""
     labels = np.array([0] * 200 + [1] * 30 + [2] * 101 + [3] * 5)
-    rows, weight = _profile.subset_rows(labels, stride=16, rim_stride=4)
+    rows, weight = _profile.subset_rows(labels, stride=16, highlight_stride=2, rim_stride=4)
     lab = labels[rows]
-    for stratum, count, picked in ((0, 200, 13), (1, 30, 30), (2, 101, 26), (3, 5, 5)):
+    for stratum, count, picked in ((0, 200, 13), (1, 30, 15), (2, 101, 26), (3, 5, 5)):
         real = (lab == stratum) & (weight > 0)
         assert real.sum() == picked, stratum
         np.testing.assert_allclose(weight[real].sum(), count, rtol=1e-12)

@@ -46,14 +46,18 @@ GUARD = 4.0
 #: dielectric, stride 8: errors up to 0.14 where it stated 0.02; 4-40 at
 #: rises of 900 where it stated 3-50).
 SE_FLOOR = 0.5
-#: Under a sky (env samples), every this many-th rim pixel, each standing for
-#: this many: a rim pixel there holds 16 env samples (the limb's, ``geometry``)
-#: and the sun's full sampling, the cost of ~16 body pixels: the rim held 90 %
-#: of env_plastic's subset's samples. ``benchmarks/profile_subset.py``, the four env
-#: cases, the estimated rises' largest error against every pixel's, in guarded
-#: standard errors (``GUARD``): 1.74 / 0.81 / 0.61 / 0.92 with every rim pixel,
-#: 1.60 / 0.79 / 0.65 / 0.79 with every 4th; the profile 0.69 -> 0.39 s (env_plastic).
-ENV_RIM_STRIDE = 4
+#: Under a sky (env samples), every this many-th highlight and rim pixel, each
+#: standing for this many: there a rim pixel holds 16 env samples (the limb's,
+#: ``geometry``) and a highlight pixel the sun's full sampling, each the cost of
+#: ~16 body pixels (the rim held 90 % of env_plastic's subset's samples); a
+#: pixel whose response stands out (``STAND_OUT``) is still taken whole.
+#: ``benchmarks/profile_subset.py``, the four env cases (plastic / phong /
+#: oren_nayar / point), the estimated rises' largest error against every
+#: pixel's, in guarded standard errors (``GUARD``): 1.74 / 0.81 / 0.61 / 0.92
+#: with every such pixel, 0.81 / 0.66 / 0.27 / 1.12 with these strides; the
+#: profile 0.69 -> 0.27 s (env_plastic; 0.40 s with every highlight pixel and
+#: every 4th rim pixel).
+ENV_HIGHLIGHT_STRIDE, ENV_RIM_STRIDE = 2, 8
 #: A pixel whose linear response to a profile step is this many times the
 #: step's mean response is taken whole (``standing_out``).
 STAND_OUT = 10.0
@@ -76,18 +80,18 @@ def standing_out(J, dzs) -> np.ndarray:
     return np.any(v > STAND_OUT * np.maximum(v.mean(axis=0), 1e-300), axis=1)
 
 
-def subset_rows(labels, stride: int = BODY_STRIDE, sharp_stride: int = 1,
+def subset_rows(labels, stride: int = BODY_STRIDE, highlight_stride: int = 1,
                 rim_stride: int = 1):
     """(rows (M,), weights (M,)) of the fitted pixels the profile evaluates:
-    every ``sharp_stride``-th highlight pixel and every ``rim_stride`` x
-    ``sharp_stride``-th rim pixel (``labels`` 1, 2), every
+    every ``highlight_stride``-th highlight and ``rim_stride``-th rim pixel
+    (``labels`` 1, 2), every
     pixel standing out (``labels`` 3), every ``stride``-th body pixel (0),
     each weighted by its stratum's pixels per pick; then padded with unpicked
     pixels of weight 0 to a size of 2^(k/8) pixels (one compile serves fits
     of similar subsets). None when the subset would not be smaller."""
     labels = np.asarray(labels)
     rows, weight, spare = [], [], []
-    for lab, step in ((0, stride), (1, sharp_stride), (2, rim_stride * sharp_stride), (3, 1)):
+    for lab, step in ((0, stride), (1, highlight_stride), (2, rim_stride), (3, 1)):
         all_ = np.nonzero(labels == lab)[0]
         picked = all_[::step]
         rows.append(picked)
@@ -170,7 +174,9 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     dzs = zs - np.asarray(z, dtype=np.float64)
     labels = pixel_regions(data.geometry).copy()  # the kept labels are read-only
     labels[(labels == 0) & standing_out(J, dzs)] = 3
-    picks = subset_rows(labels, stride, rim_stride=ENV_RIM_STRIDE if data.geometry.has_sky else 1)
+    sky = data.geometry.has_sky
+    picks = subset_rows(labels, stride, ENV_HIGHLIGHT_STRIDE if sky else 1,
+                        ENV_RIM_STRIDE if sky else 1)
     if picks is None:
         return None
     rows, weight = picks
