@@ -81,23 +81,20 @@ def _cells(sub, sub_phi=None, rings: int = 1):
     about +z in (cos alpha, phi, d cos, d phi, cell id) and the number of cells: rings in
     alpha (``ring_edges``), each cut into azimuthal sectors, one centred on phi = 0."""
     sub_phi = sub if sub_phi is None else sub_phi
-    ct, ph, dct, dph, cell = [], [], [], [], []
-    n = 0
+    out, n = [], 0
+    sa, sp = np.arange(sub), np.arange(sub_phi)
     for a0, a1 in itertools.pairwise(ring_edges(rings)):
         mid = 0.5 * (a0 + a1)
         nphi = 1 if a0 == 0 else int(np.clip(round(2 * np.pi * np.sin(mid) / (a1 - a0)),
                                              MIN_PHI, MAX_PHI))
         ca = np.cos(np.linspace(a0, a1, sub + 1))
-        for j in range(nphi):
-            for sa in range(sub):
-                for sp in range(sub_phi):
-                    ct.append(0.5 * (ca[sa] + ca[sa + 1]))  # equal-area midpoint in cos
-                    ph.append(2 * np.pi * (j + (sp + 0.5) / sub_phi - 0.5) / nphi)
-                    dct.append(ca[sa] - ca[sa + 1])
-                    dph.append(2 * np.pi / nphi / sub_phi)
-                    cell.append(n)
-            n += 1
-    return tuple(np.array(a) for a in (ct, ph, dct, dph, cell)) + (n,)
+        # (sector j, alpha row, phi column), phi fastest: the sub-cells of a cell consecutive
+        j, a, f = (x.reshape(-1) for x in np.meshgrid(np.arange(nphi), sa, sp, indexing="ij"))
+        out.append((0.5 * (ca[a] + ca[a + 1]),  # equal-area midpoint in cos
+                    2 * np.pi * (j + (f + 0.5) / sub_phi - 0.5) / nphi,
+                    ca[a] - ca[a + 1], np.full(j.size, 2 * np.pi / nphi / sub_phi), n + j))
+        n += nphi
+    return tuple(np.concatenate(a) for a in zip(*out)) + (n,)
 
 
 def _tables(rings: int = 1):
