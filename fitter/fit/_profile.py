@@ -55,7 +55,7 @@ SE_FLOOR = 0.5
 #: oren_nayar / point), the estimated rises' largest error against every
 #: pixel's, in guarded standard errors (``GUARD``): 1.74 / 0.81 / 0.61 / 0.92
 #: with every such pixel, 0.81 / 0.66 / 0.27 / 1.12 with these strides; the
-#: profile 0.69 -> 0.27 s (env_plastic; 0.40 s with every highlight pixel and
+#: profile 0.53 -> 0.25 s (env_plastic; 0.39 s with every highlight pixel and
 #: every 4th rim pixel).
 ENV_HIGHLIGHT_STRIDE, ENV_RIM_STRIDE = 2, 8
 #: A pixel whose linear response to a profile step is this many times the
