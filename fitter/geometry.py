@@ -184,6 +184,8 @@ def _own_samples(geo: Geometry, env_rows, n_rows: int) -> dict:
     lower = np.minimum(np.floor(pos), s - 2).astype(np.int64)
     node = window[np.arange(pos.size) // b, lower]
     keep = np.nonzero((env_rows >= 0) & (env_rows < n_rows))[0]
+    if not keep.size:  # none of theirs: the shared table, every sample dropped
+        return {"env_index": env_rows}
     block = SUBSET_BLOCK
     order, window, pos = blocks(node[keep], (pos - lower)[keep], geo.env_node_weight.shape[0],
                                 block=block, window=s)

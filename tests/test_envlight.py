@@ -191,6 +191,10 @@ def test_geometry_of_a_pixel_subset_equals_those_pixels_of_the_whole(sun_probe):
     np.testing.assert_array_equal(values(own), values(first))
     own_again = own.subset(np.arange(0, len(rows), 3), own_samples=True)
     np.testing.assert_array_equal(values(own_again), values(again))
+    # No pixel asked for, so no sample of theirs: the shared table, every sample dropped.
+    none = whole.subset(np.arange(0), own_samples=True)
+    idx = np.asarray(none.env_index)
+    assert none.env_color is whole.env_color and np.all(idx[idx >= 0] == 0)  # past row 0
 
 
 def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
