@@ -197,16 +197,17 @@ def _host_params(params) -> dict:
 
 def prefetch(problem) -> None:
     """Start making the finer model's geometries of the sampled fitted pixels
-    (``finer_values``) on a thread, while the solver runs, and compiling the
-    executables that render them (``_render``).
+    (``finer_values``) and the half-ring one (``ring_error``) on a thread, while
+    the solver runs, and compiling the executables that render them (``_render``).
 
     They depend on the scene, the fitted pixels and the parameters' shapes
     only, not on the fit. The geometries are NumPy (0.1 s at the quickstart's
     128^2, 8 x 8 samples; env_plastic's two with sun cells 1.9 s), which runs
     beside XLA's execution of the solve and the profile; XLA's compile (0.5 s
-    for the dielectric at 128^2) releases the interpreter too. Whatever fails
-    on the thread is done again where needed (``_geometry``, ``_render``);
-    ``wait`` joins it.
+    for the dielectric at 128^2) releases the interpreter too. The half-ring
+    geometry comes last: its tabulation and compile overlap the cost profile's
+    compile, which leaves a core free. Whatever fails on the thread is done
+    again where needed (``_geometry``, ``_render``); ``wait`` joins it.
     """
     r = problem.renderer
     scene = r.scene
@@ -215,14 +216,19 @@ def prefetch(problem) -> None:
     fine = scene.replace(supersampling=finer_supersampling(scene))
     lit = envlight.lit_by_environment(scene, r.material)
     sun = (envlight.SUN_CELL, envlight.SUN_SUB)
-    # (scene, sun cells or None, material) of each geometry ``finer_values`` makes
-    jobs = [(fine, sun if lit else None, finer_material(r.material))]
+    # (scene, sun cells or None, material, pixels, sky-term render) of each geometry
+    # ``finer_values`` and ``ring_error`` make
+    jobs = [(fine, sun if lit else None, finer_material(r.material), flat, False)]
     if lit:
-        jobs.append((scene, FINER_SUN, r.material))
-    if flat.size * sum(s.supersampling**2 for s, _, _ in jobs) > PREFETCH_SAMPLES:
+        jobs.append((scene, FINER_SUN, r.material, flat, False))
+    if flat.size * sum(s.supersampling**2 for s, *_ in jobs) > PREFETCH_SAMPLES:
         return
+    if lit and flat.size:
+        brdf = [lb.name for lb in r.material.lobe_objects if lb.kind == "brdf"]
+        jobs.append((scene.replace(lights=()), ("rings", 2), _lobes(r.material, brdf),
+                     flat[::RING_STRIDE], True))
     base = problem.base_dir
-    keys = [_geometry_key(s, base, r.env_type, cells or False, flat) for s, cells, _ in jobs]
+    keys = [_geometry_key(s, base, r.env_type, cells or False, px) for s, cells, _, px, _ in jobs]
     if keys[0] in _GEOMETRIES:  # a refit: kept
         return
     env64 = load_environment(scene.environment, base)
@@ -232,15 +238,22 @@ def prefetch(problem) -> None:
         k: v for k, v in problem.init_full.items() if k not in free}))
     boxes: list = [[None, None] for _ in jobs]
 
+    def lighting_of(s, cells):
+        if cells == ("rings", 2):
+            return _half_rings(s, env64)
+        return _sun_only(scene, env64, cells) if cells else None
+
     def make():
         try:
-            for (s, cells, material), box in zip(jobs, boxes):
-                lighting = _sun_only(scene, env64, cells) if cells else None
+            for (s, cells, material, px, sky), box in zip(jobs, boxes):
+                lighting = lighting_of(s, cells)
                 if cells == FINER_SUN and (lighting is None or not lighting.sun_dir.shape[0]):
-                    break  # no sun: ``finer_values`` renders no finer sun
-                box[0] = _prepared(build_geometry(s, r.env_type, env64, lighting, pixels=flat),
-                                   flat)
-                args, shapes = _render_args(params, box[0][0], env64, _sphere(scene))
+                    continue  # no sun: ``finer_values`` renders no finer sun
+                if lighting is None and sky:
+                    break
+                box[0] = _prepared(build_geometry(s, r.env_type, env64, lighting, pixels=px), px)
+                geo = _dark(box[0][0]) if sky else box[0][0]
+                args, shapes = _render_args(params, geo, env64, _sphere(scene))
                 exe_key = _render_key(material, r.env_type, shapes)
                 box[1] = exe_key, _compile_render(args, material, r.env_type, exe_key)
         except Exception:  # noqa: BLE001 (made again, and any error raised, where needed)
@@ -378,15 +391,19 @@ def _lobes(material, names) -> Material:
                                  if k.split(".")[0] in names})
 
 
-def _sky_term(params, geo, env, sphere, material, names, env_type) -> np.ndarray:
-    """The sky term (P, 3) of ``material``'s lobes ``names`` on ``geo``, its
-    lights, sun cells and background dropped, times the exposure if any.
-    ``params``: complete parameters, as ``_render`` takes them."""
-    dark = geo._replace(
+def _dark(geo):
+    """``geo`` with its lights, sun cells and background dropped: the sky term alone."""
+    return geo._replace(
         cosines=type(geo.cosines)(*(a[:0] for a in geo.cosines)),
         light_weight=geo.light_weight[:0], light_color=geo.light_color[:0], sun=(),
         background=to_device(np.zeros(np.shape(geo.background)), geo.background.dtype))
-    sky = _render(params, dark, env, sphere, _lobes(material, names), env_type)
+
+
+def _sky_term(params, geo, env, sphere, material, names, env_type) -> np.ndarray:
+    """The sky term (P, 3) of ``material``'s lobes ``names`` on ``geo`` (``_dark``),
+    times the exposure if any. ``params``: complete parameters, as ``_render``
+    takes them."""
+    sky = _render(params, _dark(geo), env, sphere, _lobes(material, names), env_type)
     return sky * float(params[EXPOSURE_KEY]) if material.exposure else sky
 
 
