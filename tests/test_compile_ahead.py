@@ -135,8 +135,8 @@ def sun_probe(tmp_path_factory):
 def test_sun_lit_finer_geometries_made_ahead_give_the_same_fit(sun_probe, finer_builds,
                                                                monkeypatch):
     # An environment map lighting opaque lobes: prefetch makes both finer
-    # geometries (2k samples with the default sun cells, k with FINER_SUN); the
-    # half-ring sky of the stated errors (``ring_error``, k) is made where used.
+    # geometries (2k samples with the default sun cells, k with FINER_SUN), then
+    # the half-ring sky of the stated errors (``ring_error``, k).
     scene = fitter.Scene(width=32, height=32, supersampling=2,
                          environment=fitter.Environment(type="envmap", file=sun_probe))
     material = fitter.Material.make(["lambert", "torrance_sparrow"],
@@ -148,7 +148,7 @@ def test_sun_lit_finer_geometries_made_ahead_give_the_same_fit(sun_probe, finer_
     _fresh(monkeypatch)
     ahead = fitter.fit(target, scene, material, init=truth)
     assert made_on == [(4, "fitter-finer-geometry"), (2, "fitter-finer-geometry"),
-                       (2, "MainThread")]
+                       (2, "fitter-finer-geometry")]
     made_on.clear()
     _fresh(monkeypatch)
     monkeypatch.setattr(_discretisation, "prefetch", lambda problem: None)

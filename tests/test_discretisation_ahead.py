@@ -50,38 +50,3 @@ def test_shift_of_several_changes_is_each_ones_least_squares_shift():
                                    rtol=1e-9)
         np.testing.assert_allclose(_discretisation.shift(J, d[:, k]), both[:, k], rtol=1e-12)
 
-
-def test_the_half_ring_geometry_made_ahead_gives_the_same_stated_errors(finer_builds,
-                                                                       monkeypatch, tmp_path):
-    """Under an environment lighting opaque lobes the thread also makes the
-    ring error's half-ring geometry (``ring_error``) after the finer ones; the
-    stated errors equal those of a fit that makes every geometry where it is
-    used. Reference: that fit (the same code path without the thread)."""
-    from fitter.imageio import write_image
-    from fitter.scene import Environment
-
-    img = np.full((16, 32, 3), 0.3)
-    img[:6] = [0.6, 0.7, 0.9]  # a brighter upper sky
-    img[4, 9] = [300.0, 290.0, 250.0]  # a sun texel
-    write_image(str(tmp_path / "sky.exr"), img)
-    scene = fitter.Scene(width=40, height=40, supersampling=2,
-                         environment=Environment(type="envmap", file=str(tmp_path / "sky.exr")))
-    target = np.asarray(fitter.render(GLOSSY, scene.replace(supersampling=8)))
-    made_on = finer_builds
-    monkeypatch.setattr(_discretisation, "_GEOMETRIES", {})
-    ahead = fitter.fit(target, scene, "lambert+torrance_sparrow")
-    # the finer model (4 x 4 samples), the finer sun and the half rings (2 x 2), all ahead
-    assert made_on == [(4, "fitter-finer-geometry"), (2, "fitter-finer-geometry"),
-                       (2, "fitter-finer-geometry")], made_on
-    assert not _discretisation._AHEAD
-
-    made_on.clear()
-    _discretisation._GEOMETRIES.clear()
-    monkeypatch.setattr(_discretisation, "prefetch", lambda problem: None)
-    here = fitter.fit(target, scene, "lambert+torrance_sparrow")
-    assert {name for _, name in made_on} == {threading.main_thread().name} and len(made_on) == 3
-
-    assert ahead.status == here.status
-    for key in GLOSSY:
-        for part in ("params", "stderr", "stderr_disc", "stderr_sys"):
-            np.testing.assert_array_equal(getattr(ahead, part)[key], getattr(here, part)[key])
