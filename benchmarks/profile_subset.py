@@ -2,15 +2,17 @@
 subset (``fitter.fit._profile``) against every pixel, in one process.
 
 Cases: 256^2 plastic (lambert + torrance_sparrow, 4x4 samples, JAX target at
-the truth + noise sigma 2e-3, from the lobe defaults) and the 128^2 dielectric
-(``configs/dielectric.toml`` on its Mitsuba target, from the config's start).
-Each case is fitted once (compiling everything), the profile's inputs are
-captured at the fit's solution, then the profile runs ``--repeat`` times each
-way, interleaved; the table gives the minima, the verdicts and the largest
-|estimated - whole-image| chi^2 rise over the points. Then whole
-``fitter.fit`` calls, subset on and off interleaved (minima).
+the truth + noise sigma 2e-3, from the lobe defaults), the 128^2 dielectric
+(``configs/dielectric.toml`` on its Mitsuba target, from the config's start)
+and, by ``--cases``, the four env cases (``configs/env_*.toml``, Mitsuba
+targets). Each case is fitted once (compiling everything), the profile's
+inputs are captured at the fit's solution, then the profile runs ``--repeat``
+times each way, interleaved; the line gives the minima, the verdicts and the
+largest |estimated - whole-image| chi^2 rise over the points, also in the
+subset's guarded standard errors (``_profile.GUARD`` applies to these). Then
+whole ``fitter.fit`` calls, subset on and off interleaved (minima).
 
-    python benchmarks/profile_subset.py [--repeat 5]
+    python benchmarks/profile_subset.py [--repeat 5] [--cases "env_plastic 128²" ...]
 """
 
 from __future__ import annotations
