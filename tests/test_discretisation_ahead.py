@@ -49,4 +49,3 @@ def test_shift_of_several_changes_is_each_ones_least_squares_shift():
         np.testing.assert_allclose(both[:, k], np.linalg.solve(J.T @ J, J.T @ d[:, k]),
                                    rtol=1e-9)
         np.testing.assert_allclose(_discretisation.shift(J, d[:, k]), both[:, k], rtol=1e-12)
-
