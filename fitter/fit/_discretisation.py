@@ -32,6 +32,7 @@ with the Jacobian the systematic part already computed
 
 from __future__ import annotations
 
+import functools
 import threading
 
 import jax
@@ -149,11 +150,20 @@ def _render(params, geo, env, sphere, material, env_type) -> np.ndarray:
     return np.asarray(exe(*args), dtype=np.float64)
 
 
-def _sun_only(scene, env64, sun):
-    """The environment's sun cells at ``sun`` = (cell, sub) and no sky term (the
-    ``lighting`` of ``geometry.build_geometry``), or None without one."""
-    lighting = envlight.env_lights(scene.environment.type, np.asarray(env64.image),
-                                   np.asarray(env64.constant), sun=sun)
+@functools.lru_cache(maxsize=8)
+def _lighting(environment, base_dir, kind):
+    """The ``lighting`` of ``geometry.build_geometry`` for a finer geometry, or
+    None without one: ``kind`` = (cell, sub), the environment's sun cells at
+    that size and no sky term; ``kind`` an ``envlight.Detail``, its sky alone on
+    that stencil (``_half_rings``) and no sun. Made once per environment: a
+    compiled env_plastic fit made its three again every time (0.06 s)."""
+    env64 = load_environment(environment, base_dir)
+    image, constant = np.asarray(env64.image), np.asarray(env64.constant)
+    if isinstance(kind, envlight.Detail):
+        lighting = envlight.env_lights(environment.type, image, constant, detail=kind)
+        return None if lighting is None else lighting._replace(
+            sun_dir=np.zeros((0, 3)), sun_irradiance=np.zeros((0, 3)))
+    lighting = envlight.env_lights(environment.type, image, constant, sun=kind)
     return None if lighting is None else lighting._replace(sky=None)
 
 
@@ -216,8 +226,8 @@ def prefetch(problem) -> None:
     fine = scene.replace(supersampling=finer_supersampling(scene))
     lit = envlight.lit_by_environment(scene, r.material)
     sun = (envlight.SUN_CELL, envlight.SUN_SUB)
-    # (scene, sun cells or None, material, pixels, sky-term render) of each geometry
-    # ``finer_values`` and ``ring_error`` make
+    # (scene, ``_lighting``'s kind or None, material, pixels, sky-term render) of each
+    # geometry ``finer_values`` and ``ring_error`` make
     jobs = [(fine, sun if lit else None, finer_material(r.material), flat, False)]
     if lit:
         jobs.append((scene, FINER_SUN, r.material, flat, False))
@@ -225,7 +235,7 @@ def prefetch(problem) -> None:
         return
     if lit and flat.size:
         brdf = [lb.name for lb in r.material.lobe_objects if lb.kind == "brdf"]
-        jobs.append((scene.replace(lights=()), ("rings", 2), _lobes(r.material, brdf),
+        jobs.append((scene.replace(lights=()), _half_rings(), _lobes(r.material, brdf),
                      flat[::RING_STRIDE], True))
     base = problem.base_dir
     keys = [_geometry_key(s, base, r.env_type, cells or False, px) for s, cells, _, px, _ in jobs]
@@ -238,15 +248,10 @@ def prefetch(problem) -> None:
         k: v for k, v in problem.init_full.items() if k not in free}))
     boxes: list = [[None, None] for _ in jobs]
 
-    def lighting_of(s, cells):
-        if cells == ("rings", 2):
-            return _half_rings(s, env64)
-        return _sun_only(scene, env64, cells) if cells else None
-
     def make():
         try:
             for (s, cells, material, px, sky), box in zip(jobs, boxes):
-                lighting = lighting_of(s, cells)
+                lighting = _lighting(scene.environment, base, cells) if cells else None
                 if cells == FINER_SUN and (lighting is None or not lighting.sun_dir.shape[0]):
                     continue  # no sun: ``finer_values`` renders no finer sun
                 if lighting is None and sky:
@@ -353,13 +358,14 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
     if rows is not None:
         flat = flat[rows]
     lit = envlight.lit_by_environment(scene, material)
-    sun = _sun_only(scene, env64, (envlight.SUN_CELL, envlight.SUN_SUB)) if lit else None
+    sun = _lighting(scene.environment, base, (envlight.SUN_CELL, envlight.SUN_SUB)) \
+        if lit else None
     fine = scene.replace(supersampling=finer_supersampling(scene))
     key = lambda s, cells: _geometry_key(s, base, env_type, lit and cells, flat)  # noqa: E731
     vals, coverage = _values(fine, finer_material(material), env64, sun, flat, params, env_type,
                              key(fine, (envlight.SUN_CELL, envlight.SUN_SUB)))
     if sun is not None and sun.sun_dir.shape[0]:
-        finer_sun = _sun_only(scene, env64, FINER_SUN)
+        finer_sun = _lighting(scene.environment, base, FINER_SUN)
         more = _values(scene, material, env64, finer_sun, flat, params, env_type,
                        key(scene, FINER_SUN))[0]
         if coarse is None:
@@ -445,13 +451,10 @@ RING_RICHARDSON = 3.0
 RING_STRIDE = 8
 
 
-def _half_rings(scene, env64):
-    """The environment's sky alone on a stencil of half the rings (``Detail.rings``
-    = 2), no sun cells (the ``lighting`` of ``geometry.build_geometry``), or None."""
-    lighting = envlight.env_lights(scene.environment.type, np.asarray(env64.image),
-                                   np.asarray(env64.constant), detail=envlight.Detail(rings=2))
-    return None if lighting is None else lighting._replace(
-        sun_dir=np.zeros((0, 3)), sun_irradiance=np.zeros((0, 3)))
+def _half_rings() -> envlight.Detail:
+    """The sky stencil of half the rings (``Detail.rings`` = 2), the rest as
+    ``Detail()`` is now: ``ring_error``'s ``_lighting`` kind and geometry key."""
+    return envlight.Detail(rings=2)
 
 
 def ring_error(problem, params, rows, sky) -> np.ndarray:
@@ -465,15 +468,15 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
     scene, material, env_type = r.scene, r.material, r.env_type
     brdf = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
     env64 = load_environment(scene.environment, problem.base_dir)
-    lighting = (_half_rings(scene, env64) if envlight.lit_by_environment(scene, material)
-                else None)
+    lighting = (_lighting(scene.environment, problem.base_dir, _half_rings())
+                if envlight.lit_by_environment(scene, material) else None)
     pick = np.arange(0, len(rows), RING_STRIDE)
     if lighting is None or not pick.size:
         return np.zeros(np.shape(sky))
     dark = scene.replace(lights=())  # no point lights to trace: the sky term alone
     flat = np.asarray(r.pixel_index)[problem.rows][np.asarray(rows)[pick]]
     geo, found, _ = _geometry(dark, env64, lighting, flat, env_type, _geometry_key(
-        dark, problem.base_dir, env_type, ("rings", 2), flat))
+        dark, problem.base_dir, env_type, _half_rings(), flat))
     half = np.zeros((pick.size, 3))
     half[found] = _sky_term(_host_params(params), geo, env64, _sphere(scene), material, brdf,
                             env_type)
