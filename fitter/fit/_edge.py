@@ -109,7 +109,7 @@ def pin(problem, b: int, stopped, cost: float, solve_starts, finish, say, t_star
     if edge is None:
         return None
     key, bound = edge
-    pinned = problem.pinned({key: bound}, [])
+    pinned = problem.pinned({key: bound})
     pdata = pinned.data(b)
     z0 = z_from_params(pinned.spec, {**pinned.init_full, **{
         k: v for k, v in stopped.params.items() if k != key}}, 0.0)

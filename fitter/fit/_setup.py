@@ -322,13 +322,11 @@ class Problem:
         mask[np.asarray(self.renderer.pixel_index)[self.rows[used]]] = True
         return mask.reshape(scene.height, scene.width)
 
-    def pinned(self, values: dict, reasons) -> Problem:
-        """This problem with the parameters ``values`` fixed there and ``reasons``
-        added to its warnings: values fitted on the edge of their box
-        (``_edge``), not unidentifiable ones."""
-        return dataclasses.replace(
-            self, blocks=tuple(b for b in self.blocks if b.key not in values),
-            init_full={**self.init_full, **values}, warnings=self.warnings + tuple(reasons))
+    def pinned(self, values: dict) -> Problem:
+        """This problem with the parameters ``values`` fixed there (``held``), as
+        values fitted on the edge of their box (``_edge``), not unidentifiable."""
+        return dataclasses.replace(self.held(list(values), [], values),
+                                   unidentifiable=self.unidentifiable)
 
     def held(self, keys, reasons, values=None) -> Problem:
         """This problem with parameters ``keys`` no longer free, ``reasons``

@@ -62,7 +62,7 @@ def near_bounds(spec: Spec, params, sd) -> list:
         x = np.atleast_1d(np.asarray(params[blk.key], dtype=np.float64))
         for bound in (blk.lower, blk.upper):
             if np.any(np.abs(x - bound) <= sd[sl]):
-                near.append((blk, bound, sd[sl] if blk.size == 3 else float(sd[sl][0])))
+                near.append((blk, bound, sd[sl] if blk.size > 1 else float(sd[sl][0])))
                 break
     return near
 
