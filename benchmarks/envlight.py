@@ -69,7 +69,7 @@ def _variant(label):
              geometry.ENV_LIMB_COS)
     nodes, sub, rings = skystencil.Detail()
     change = {"default": {}, "nodes 49": {"nodes": 49}, "nodes 65": {"nodes": 65},
-              "nodes 97": {"nodes": 97}, "nodes 193": {"nodes": 193},
+              "nodes 193": {"nodes": 193},
               "sub 1x1": {"sub": (1, 1)}, "sub 1x2": {"sub": (1, 2)}, "sub 4x8": {"sub": (4, 8)},
               "coarse rings": {"rings": 2},
               "sun everywhere": {"cone": 4.0}, "limb 0.2": {"limb": 0.2},
@@ -137,7 +137,7 @@ def accuracy(a):
     scene = serialize.scene_from_dict(spec["scene"], a.case, base_dir=base)
     mat, truth, _, _ = serialize.material_from_dict(spec["material"], a.case)
     truth = mat.full_params(truth)
-    labels = ["default", "nodes 49", "nodes 65", "nodes 97", "nodes 193", "sub 1x1", "sub 1x2", "sub 4x8",
+    labels = ["default", "nodes 49", "nodes 65", "nodes 193", "sub 1x1", "sub 1x2", "sub 4x8",
               "coarse rings", "sun everywhere", "limb 0.2", "limb 0.1"]
     if a.variants != "all":
         labels = [v for v in labels if v in a.variants.split(",")]

@@ -41,17 +41,8 @@ def _plastic():
     return lambda: fitter.fit(target, job.scene, job.material, fixed=job.fixed, base_dir=base)
 
 
-def _dielectric():
-    import fitter
-    from fitter import config, pipeline
-
-    job = config.load_config(os.path.join(ROOT, "configs/dielectric.toml"))
-    target, _ = pipeline.read_target(job.fit.target, job.scene)
-    return lambda: fitter.fit(target, job.scene, job.material, init=job.init, fixed=job.fixed,
-                              base_dir=job.base_dir)
-
-
-def _env(case: str):
+def _config(case: str):
+    """A shipped config's fit (its Mitsuba target, from the config's start)."""
     import fitter
     from fitter import config, pipeline
 
@@ -62,7 +53,8 @@ def _env(case: str):
 
 
 def rises(args, subset: bool):
-    """(chi^2 rises at the profile's points, the verdict, seconds)."""
+    """(chi^2 rises at the profile's points, their estimated standard errors
+    (None on every pixel), the verdict, seconds)."""
     from fitter.fit import _compile, _identify, _profile
 
     spec, data, z, R, _, sigma = args
@@ -82,8 +74,9 @@ def rises(args, subset: bool):
     estimate = _profile.estimated_rises
 
     def spy_se(*a, **k):
-        seen["se"] = estimate(*a, **k)[1]
-        return estimate(*a, **k)
+        out = estimate(*a, **k)
+        seen["se"] = out[1]
+        return out
 
     _identify.profile_verdict = spy
     _profile.estimated_rises = spy_se
@@ -93,12 +86,7 @@ def rises(args, subset: bool):
         _identify.profile_verdict = verdict
         _profile.estimated_rises = estimate
         _profile.ENABLED = True
-    SE[subset] = seen.get("se")
-    return seen.get("rise", np.zeros(0)), why, sec
-
-
-#: The last profile's estimated standard errors (by subset on/off), for the table.
-SE: dict = {}
+    return seen.get("rise", np.zeros(0)), seen.get("se"), why, sec
 
 
 def main(argv=None) -> int:
@@ -109,9 +97,10 @@ def main(argv=None) -> int:
 
     from fitter.fit import _drivers, _profile
 
-    makers = {"plastic 256²": _plastic, "dielectric 128²": _dielectric,
-              **{f"{c} 128²": functools.partial(_env, c)
-                 for c in ("env_plastic", "env_phong", "env_oren_nayar", "env_point")}}
+    makers = {"plastic 256²": _plastic,
+              **{f"{c} 128²": functools.partial(_config, c)
+                 for c in ("dielectric", "env_plastic", "env_phong", "env_oren_nayar",
+                           "env_point")}}
     for name in args.cases:
         run = makers[name]()
         captured: list = []
@@ -134,10 +123,10 @@ def main(argv=None) -> int:
         times = {True: [], False: []}
         for _ in range(args.repeat):
             for subset in (False, True):
-                rise, why, sec = rises(a, subset)
+                rise, se, why, sec = rises(a, subset)
                 times[subset].append(sec)
                 if subset:
-                    est, why_sub = rise, why
+                    est, se_sub, why_sub = rise, se, why
                 else:
                     full, why_full = rise, why
         fits = {True: [], False: []}
@@ -152,9 +141,8 @@ def main(argv=None) -> int:
                     p_sub = out.params
                 else:
                     p_full = out.params
-        se = SE.get(True)
-        guarded = (np.max(np.abs(est - full) / np.hypot(se, _profile.SE_FLOOR))
-                   if se is not None and len(se) == len(full) else float("nan"))
+        guarded = (np.max(np.abs(est - full) / np.hypot(se_sub, _profile.SE_FLOOR))
+                   if se_sub is not None and len(se_sub) == len(full) else float("nan"))
         same = all(np.array_equal(np.asarray(p_sub[k]), np.asarray(p_full[k])) for k in p_sub)
         print(f"{name}: {len(full)} points; profile stage min {min(times[False]):.3f} s "
               f"(every pixel) -> {min(times[True]):.3f} s (subset), "
