@@ -20,13 +20,9 @@ own switch) is left in charge.
 
 from __future__ import annotations
 
-import functools
 import os
-import threading
 
-_LOCK = threading.Lock()
-_depth = 0
-_saved = None
+from ._switch import SharedSwitch
 
 
 def _switch():
@@ -36,36 +32,15 @@ def _switch():
     return getattr(multiarray, "_set_madvise_hugepage", None)
 
 
-def _enter() -> bool:
-    """Turn the advice off (once for all callers); False where left to the user."""
-    global _depth, _saved
-    if "NUMPY_MADVISE_HUGEPAGE" in os.environ or _switch() is None:
-        return False
-    with _LOCK:
-        if _depth == 0:
-            _saved = bool(_switch()(False))
-        _depth += 1
-    return True
+def _turn_off():
+    """Turn the advice off: the function restoring it, or None where left to the user."""
+    switch = _switch()
+    if "NUMPY_MADVISE_HUGEPAGE" in os.environ or switch is None:
+        return None
+    saved = bool(switch(False))
+    return lambda: switch(saved)
 
 
-def _leave() -> None:
-    global _depth
-    with _LOCK:
-        _depth -= 1
-        if _depth == 0:
-            _switch()(_saved)
-
-
-def advice_off(f):
-    """``f`` with NumPy's huge-page advice off while it runs (nested and
-    concurrent calls share one switch: the last to return restores it)."""
-    @functools.wraps(f)
-    def g(*args, **kwargs):
-        entered = _enter()
-        try:
-            return f(*args, **kwargs)
-        finally:
-            if entered:
-                _leave()
-
-    return g
+#: ``f`` with NumPy's huge-page advice off while it runs (nested and concurrent
+#: calls share one switch: the last to return restores it).
+advice_off = SharedSwitch(_turn_off)

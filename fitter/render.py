@@ -33,6 +33,7 @@ from ._modules import make_callable
 from .bsdf.base import Cosines, SurfaceHit
 from .environment import EnvData, load_environment, lookup
 from .geometry import Geometry, build_geometry
+from .blasthreads import one_blas_thread
 from .hugepages import advice_off
 from .material import EXPOSURE_KEY, Material, MaterialError, lobe_params
 from .scene import Scene, SceneError, resolve_path
@@ -332,6 +333,7 @@ def _prepare_key(scene: Scene, base_dir):
 
 @functools.lru_cache(maxsize=8)
 @advice_off  # large short-lived NumPy arrays (``fitter.hugepages``)
+@one_blas_thread
 def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
     """Material-independent arrays of a scene (shared by every material).
 

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..blasthreads import one_blas_thread
 from ..compilation_cache import active_dir
 from ..hugepages import advice_off
 from ..limits import check_fit
@@ -104,6 +105,7 @@ def _settled(f):
 
 
 @advice_off
+@one_blas_thread
 @_settled
 def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None,
         fixed: Mapping[str, Any] | None = None, bounds: Mapping[str, tuple] | None = None,
@@ -235,8 +237,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     say("checking identifiability and the stated errors")
     res = _finish(problem, 0, zs[best], int(codes[best]), int(nsteps[best]), float(costs[best]),
                   identifiability=identifiability, t_start=t_start, t_compile=t_compile,
-                  say=say,
-                  starts=starts, jr=(r_factor(R), np.asarray(r, dtype=np.float64)),
+                  say=say, starts=starts, jr=(r_factor(R), np.asarray(r, dtype=np.float64)),
                   alternatives=[(zs[i], float(costs[i])) for i in range(len(costs))
                                 if i != best])
     if note:
@@ -260,8 +261,7 @@ def solve_starts(problem: Problem, z0s, data, say=_quiet, what: str = ""):
     z0s = np.asarray(z0s)
     one = problem.cast(z0s[:1])
     solve, t_compile = compiled("solve", problem.spec, (one, data), **problem.static)
-    outs = []
-    n = len(z0s)
+    outs, n = [], len(z0s)
     for i in range(n):  # the line stands while the start solves
         best_so_far = (f" (best cost so far {min(float(o[3][0]) for o in outs):.4g})"
                        if outs else "")
@@ -281,6 +281,7 @@ def solve_starts(problem: Problem, z0s, data, say=_quiet, what: str = ""):
 
 
 @advice_off
+@one_blas_thread
 def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
               identifiability: bool = True, **kwargs) -> list[FitResult]:
     """Fit many targets of one scene and material in one compiled solve.
