@@ -13,7 +13,6 @@ from scipy.special import chdtri
 
 import fitter
 from fitter.fit import _compile, _drivers, _identify, _profile
-from fitter.fit._adequacy import pixel_regions
 from fitter.fit._covariance import residual_variance
 
 LIGHTS = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),
@@ -55,6 +54,22 @@ def test_strides_weight_each_pick_by_its_stratum():
                                   np.arange(230, 331)[::4])
 
 
+def test_a_body_pixel_standing_out_is_whole(monkeypatch):
+    """A body pixel whose linear response is far above the mean (``STAND_OUT``)
+    is stratum 3, taken whole; highlight and rim pixels keep their region
+    (strided) whether they stand out or not. Reference: responses set by hand."""
+    from fitter.fit import _adequacy
+
+    regions = np.array([0, 0, 1, 1, 2, 2] * 10)
+    monkeypatch.setattr(_adequacy, "pixel_regions", lambda geometry: regions)
+    J = np.zeros((3 * regions.size, 1))
+    J[::3] = 1.0
+    J[3 * np.array([0, 2, 4]), 0] = 100.0  # one pixel of each region stands out
+    labels = _profile.strata(None, J, np.ones((2, 1)))
+    np.testing.assert_array_equal(labels[:6], [3, 0, 1, 1, 2, 2])
+    np.testing.assert_array_equal(labels[6:], regions[6:])
+
+
 def _profile_inputs(monkeypatch, eta: float):
     """Fit a 64^2 lambert + torrance_sparrow sphere (eta given) with the subset
     forced on; return the fit and the profile's inputs at its first solution,
@@ -93,9 +108,7 @@ def test_subset_verdict_equals_every_pixels(monkeypatch, eta):
     points = _identify.profile_points(spec, z, R, s2)
     zs = np.stack([zt for _, zt in points])
     whole = _compile.costs_at(spec, zs, data)
-    labels = pixel_regions(data.geometry).copy()  # the kept labels are read-only
-    labels[(labels == 0) & _profile.standing_out(J, zs - z)] = 3
-    picks = _profile.subset_rows(labels)
+    picks = _profile.subset_rows(_profile.strata(data.geometry, J, zs - z))
     assert picks is not None and len(picks[0]) < 0.5 * np.shape(data.target)[0]
     level = chdtri(1, 0.05)  # the 95 % quantile of chi^2 with 1 dof
     sub = _profile.subset_costs(spec, data, z, J, r, s2, cost, points, level,

@@ -8,10 +8,11 @@ change dm_p = J_p dz + a_p, into the Gauss-Newton quadratic
 
 and a remainder e = sum_p e_p, e_p = r_p . a_p + (J_p dz) . a_p + |a_p|^2 / 2,
 which is zero where the model is linear in z. Only the remainder is estimated
-from a subset of pixels: every highlight and rim pixel (weight 1: where the
-model is sharp, ``_adequacy.pixel_regions``, and pixels whose linear response
-stands out, ``standing_out``) and every ``BODY_STRIDE``-th body pixel (weight:
-body pixels per pick), a Horvitz-Thompson sum with variance
+from a subset of pixels: every body pixel whose linear response stands out
+(``standing_out``: weight 1), every ``HIGHLIGHT_STRIDE``-th highlight and
+``RIM_STRIDE``-th rim pixel (where the model is sharp,
+``_adequacy.pixel_regions``) and every ``BODY_STRIDE``-th body pixel, each
+weighted by its region's pixels per pick: a Horvitz-Thompson sum with variance
 estimate sum_picked W (W - 1) e_p^2 (Horvitz & Thompson 1952; Poisson
 sampling with inclusion probability 1 / W). So the estimated rise equals the
 full one exactly when the residuals are linear in z, and a point whose
@@ -46,20 +47,21 @@ GUARD = 4.0
 #: dielectric, stride 8: errors up to 0.14 where it stated 0.02; 4-40 at
 #: rises of 900 where it stated 3-50).
 SE_FLOOR = 0.5
-#: Under a sky (env samples), every this many-th highlight and rim pixel, each
-#: standing for this many: there a rim pixel holds 16 env samples (the limb's,
-#: ``geometry``) and a highlight pixel the sun's full sampling, each the cost of
-#: ~16 body pixels (the rim held 90 % of env_plastic's subset's samples); a
-#: pixel whose response stands out (``STAND_OUT``) is still taken whole.
-#: ``benchmarks/profile_subset.py``, the four env cases (plastic / phong /
-#: oren_nayar / point), the estimated rises' largest error against every
-#: pixel's, in guarded standard errors (``GUARD``): 1.74 / 0.81 / 0.61 / 0.92
-#: with every such pixel, 0.81 / 0.66 / 0.27 / 1.12 with these strides; the
-#: profile 0.53 -> 0.25 s (env_plastic; 0.39 s with every highlight pixel and
-#: every 4th rim pixel).
-ENV_HIGHLIGHT_STRIDE, ENV_RIM_STRIDE = 2, 8
-#: A pixel whose linear response to a profile step is this many times the
-#: step's mean response is taken whole (``standing_out``).
+#: Every this many-th highlight and rim pixel, each standing for this many
+#: (``strata``: there a pixel standing out is strided too). Under a
+#: sky a rim pixel holds 16 env samples (the limb's, ``geometry``) and a
+#: highlight pixel the sun's full sampling, each the cost of ~16 body pixels
+#: (the rim held 90 % of env_plastic's subset's samples when taken whole);
+#: point-lit, highlight and rim held 80 % of 256^2 plastic's subset.
+#: ``benchmarks/profile_subset.py``, the estimated rises' largest error against
+#: every pixel's, in guarded standard errors (``GUARD``), every highlight and
+#: rim pixel -> these strides: env_plastic / env_phong / env_oren_nayar /
+#: env_point 1.74 / 0.81 / 0.61 / 0.92 -> 0.81 / 0.66 / 0.27 / 1.12; 256^2
+#: plastic 0.62 -> 0.64, 128^2 dielectric 0.87 -> 1.27. The profile: env_plastic
+#: 0.53 -> 0.25 s, 256^2 plastic 0.116 -> 0.065 s, dielectric 0.30 -> 0.15 s.
+HIGHLIGHT_STRIDE, RIM_STRIDE = 2, 8
+#: A body pixel whose linear response to a profile step is this many times
+#: the step's mean response is taken whole (``standing_out``, ``strata``).
 STAND_OUT = 10.0
 
 
@@ -80,8 +82,23 @@ def standing_out(J, dzs) -> np.ndarray:
     return np.any(v > STAND_OUT * np.maximum(v.mean(axis=0), 1e-300), axis=1)
 
 
-def subset_rows(labels, stride: int = BODY_STRIDE, highlight_stride: int = 1,
-                rim_stride: int = 1):
+def strata(geometry, J, dzs) -> np.ndarray:
+    """(P,) stratum of each fitted pixel for ``subset_rows``: its region (0 body,
+    1 highlight, 2 rim: ``_adequacy.pixel_regions``), or 3 for a body pixel
+    that stands out (``standing_out``), where a pick stands for
+    ``BODY_STRIDE``. Measured (``benchmarks/profile_subset.py``): also taking
+    the highlight's and rim's whole added env_plastic's profile 0.06-0.09 s
+    and left the estimates' errors as they were (0.27-1.24 guarded
+    standard errors over the six cases, against 0.27-1.27)."""
+    from ._adequacy import pixel_regions
+
+    labels = pixel_regions(geometry).copy()  # the kept labels are read-only
+    labels[standing_out(J, dzs) & (labels == 0)] = 3
+    return labels
+
+
+def subset_rows(labels, stride: int = BODY_STRIDE, highlight_stride: int = HIGHLIGHT_STRIDE,
+                rim_stride: int = RIM_STRIDE):
     """(rows (M,), weights (M,)) of the fitted pixels the profile evaluates:
     every ``highlight_stride``-th highlight and ``rim_stride``-th rim pixel
     (``labels`` 1, 2), every
@@ -164,7 +181,6 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     s2 / 2 times the estimated rise, or the whole image's cost where the
     estimate is too close to a threshold; None when the subset does not apply
     (too few pixels, or no whole Jacobian ``J``)."""
-    from ._adequacy import pixel_regions
     from ._compile import costs_at, residuals_at_points, residuals_of_rows
 
     if (not ENABLED or J is None or np.shape(J)[0] != np.size(r)
@@ -172,11 +188,7 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
         return None
     zs = np.stack([zt for _, zt in points])
     dzs = zs - np.asarray(z, dtype=np.float64)
-    labels = pixel_regions(data.geometry).copy()  # the kept labels are read-only
-    labels[(labels == 0) & standing_out(J, dzs)] = 3
-    sky = data.geometry.has_sky
-    picks = subset_rows(labels, stride, ENV_HIGHLIGHT_STRIDE if sky else 1,
-                        ENV_RIM_STRIDE if sky else 1)
+    picks = subset_rows(strata(data.geometry, J, dzs), stride)
     if picks is None:
         return None
     rows, weight = picks
