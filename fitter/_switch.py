@@ -23,6 +23,11 @@ class SharedSwitch:
         self._depth = 0
         self._restore: Callable[[], object] | None = None
 
+    @property
+    def on(self) -> bool:
+        """Whether the setting is changed now (some decorated call runs)."""
+        return self._depth > 0
+
     def _enter(self) -> bool:
         with self._lock:
             if self._depth == 0:

@@ -12,27 +12,64 @@ A Gauss-Newton step's XLA run took 40 ms beside them and 21 ms alone.
 
 ``one_blas_thread`` limits every loaded BLAS library to one thread
 (``threadpoolctl``) while a decorated call, or any thread it starts, runs,
-and restores the libraries' settings when the last such call returns.
+and restores the libraries' settings when the last such call returns. A
+library loaded while it runs is limited by ``catch_up``: jaxlib takes its
+CPU LAPACK kernels from SciPy's own OpenBLAS, loaded when the first
+linear-algebra op of a process is lowered (inside a first fit).
 """
 
 from __future__ import annotations
 
+import threading
+
 from ._switch import SharedSwitch
+
+#: The limits set while the switch is on, restored last first (``catch_up``
+#: adds one when libraries were loaded meanwhile), and how many BLAS libraries
+#: they cover.
+_LIMITERS: list = []
+_COVERED = [0]
+_LOCK = threading.Lock()
+
+
+def _blas():
+    """threadpoolctl's controller of the BLAS libraries loaded now (~1 ms: it
+    scans the process's shared libraries)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController().select(user_api="blas")
 
 
 def _limit():
     """Limit BLAS to one thread: the function restoring the previous limits."""
-    from threadpoolctl import ThreadpoolController  # (scans the loaded libraries: ~1 ms)
-
-    _free()
-    limiter = ThreadpoolController().limit(limits=1, user_api="blas")
-    _free()
-
-    def restore():
-        limiter.restore_original_limits()
+    with _LOCK:
+        _free()
+        blas = _blas()
+        _LIMITERS[:], _COVERED[0] = [blas.limit(limits=1)], len(blas.info())
         _free()
 
+    def restore():
+        with _LOCK:
+            for limiter in reversed(_LIMITERS):
+                limiter.restore_original_limits()
+            _LIMITERS.clear()
+            _free()
+
     return restore
+
+
+def catch_up() -> None:
+    """Limit the BLAS libraries loaded since the switch turned on (a call after
+    an XLA compile: ~1 ms); nothing while it is off."""
+    with _LOCK:
+        if not one_blas_thread.on or not _LIMITERS:
+            return
+        blas = _blas()
+        if len(blas.info()) > _COVERED[0]:
+            _free()
+            _LIMITERS.append(blas.limit(limits=1))
+            _COVERED[0] = len(blas.info())
+            _free()
 
 
 def _free() -> None:

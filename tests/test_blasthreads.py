@@ -93,3 +93,50 @@ def test_a_scene_is_prepared_with_one_blas_thread(monkeypatch):
     scene = serialize.scene_from_dict(CASES["plastic"]["scene"], "plastic")
     render._prepare.__wrapped__(scene.replace(width=9, height=7), np.dtype(np.float64), None)
     assert seen == [1] and blas_threads() == 2
+
+
+def test_a_library_loaded_inside_is_limited_and_restored(monkeypatch):
+    """A BLAS library that appears while the switch is on (as SciPy's OpenBLAS
+    does at a process's first LAPACK lowering) is limited by ``catch_up`` and
+    given back its own limit after. Stand-in: the libraries blasthreads sees
+    grow by one fake library (2 threads) while the call runs."""
+    real = blasthreads._blas
+    fake = {"threads": 2, "loaded": False}
+
+    class Blas:
+        def __init__(self):
+            self.real = real()
+
+        def info(self):
+            extra = [{"num_threads": fake["threads"]}] if fake["loaded"] else []
+            return self.real.info() + extra
+
+        def limit(self, limits):
+            limiter, before = self.real.limit(limits=limits), fake["threads"]
+            if fake["loaded"]:
+                fake["threads"] = limits
+
+            class Restore:
+                def restore_original_limits(self):
+                    limiter.restore_original_limits()
+                    fake["threads"] = before
+
+            return Restore()
+
+    monkeypatch.setattr(blasthreads, "_blas", Blas)
+    seen = []
+
+    def body():
+        fake["loaded"] = True
+        seen.append(fake["threads"])
+        blasthreads.catch_up()
+        seen.append((blas_threads(), fake["threads"]))
+
+    blasthreads.one_blas_thread(body)()
+    assert seen == [2, (1, 1)]
+    assert blas_threads() == 2 and fake["threads"] == 2
+
+
+def test_catch_up_does_nothing_while_off():
+    blasthreads.catch_up()
+    assert blas_threads() == 2

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._math import to_device
+from ..blasthreads import catch_up
 from ..compilation_cache import FAST_COMPILE
 from ._cache import compile_cached, lower_cached
 from ._problem import Spec, residuals
@@ -219,8 +220,10 @@ def _x64(args) -> bool:
 
 def _build(kind: str, spec: Spec, args, once: bool, static: dict, key):
     with jax.enable_x64(_x64(args)):
-        return compile_cached(_function(kind, spec, static), args, repr(key),
-                              _options(kind, once, spec))
+        exe = compile_cached(_function(kind, spec, static), args, repr(key),
+                             _options(kind, once, spec))
+    catch_up()  # a first lowering of a LAPACK op loads SciPy's OpenBLAS
+    return exe
 
 
 def _compile_lowered(lowered, options: dict, x64: bool):
@@ -253,6 +256,7 @@ def compile_ahead(kind: str, spec: Spec, args, once: bool = False, **static) -> 
             lowered = lower_cached(_function(kind, spec, static), args, repr(key))
     except Exception:  # noqa: BLE001 (traced again, and any error raised, where asked)
         return
+    catch_up()
     box: list = []
 
     def run():
