@@ -41,12 +41,18 @@ def _blas():
 
 
 def _limit():
-    """Limit BLAS to one thread: the function restoring the previous limits."""
+    """Limit BLAS to one thread: the function restoring the previous limits,
+    or None where the libraries cannot be limited (left as they are: a speed
+    setting never fails a fit)."""
     with _LOCK:
-        _free()
-        blas = _blas()
-        _LIMITERS[:], _COVERED[0] = [blas.limit(limits=1)], len(blas.info())
-        _free()
+        try:
+            _free()
+            blas = _blas()
+            _LIMITERS[:], _COVERED[0] = [blas.limit(limits=1)], len(blas.info())
+            _free()
+        except Exception:  # noqa: BLE001
+            _LIMITERS.clear()
+            return None
 
     def restore():
         with _LOCK:
@@ -64,12 +70,15 @@ def catch_up() -> None:
     with _LOCK:
         if not one_blas_thread.on or not _LIMITERS:
             return
-        blas = _blas()
-        if len(blas.info()) > _COVERED[0]:
-            _free()
-            _LIMITERS.append(blas.limit(limits=1))
-            _COVERED[0] = len(blas.info())
-            _free()
+        try:
+            blas = _blas()
+            if len(blas.info()) > _COVERED[0]:
+                _free()
+                _LIMITERS.append(blas.limit(limits=1))
+                _COVERED[0] = len(blas.info())
+                _free()
+        except Exception:  # noqa: BLE001 (as in ``_limit``)
+            pass
 
 
 def _free() -> None:

@@ -140,3 +140,16 @@ def test_a_library_loaded_inside_is_limited_and_restored(monkeypatch):
 def test_catch_up_does_nothing_while_off():
     blasthreads.catch_up()
     assert blas_threads() == 2
+
+
+def test_a_library_that_cannot_be_limited_leaves_the_call_running(monkeypatch):
+    """threadpoolctl failing (an odd BLAS build) leaves the limits as they are
+    and the decorated call runs and returns as without the switch."""
+    def broken():
+        raise OSError("no symbol")
+
+    monkeypatch.setattr(blasthreads, "_blas", broken)
+    seen = []
+    out = blasthreads.one_blas_thread(lambda: seen.append(blas_threads()) or 7)()
+    blasthreads.catch_up()
+    assert out == 7 and seen == [2] and blas_threads() == 2

@@ -86,10 +86,10 @@ def strata(geometry, J, dzs) -> np.ndarray:
     """(P,) stratum of each fitted pixel for ``subset_rows``: its region (0 body,
     1 highlight, 2 rim: ``_adequacy.pixel_regions``), or 3 for a body pixel
     that stands out (``standing_out``), where a pick stands for
-    ``BODY_STRIDE``. Measured (``benchmarks/profile_subset.py``): also taking
-    the highlight's and rim's whole added env_plastic's profile 0.06-0.09 s
-    and left the estimates' errors as they were (0.27-1.24 guarded
-    standard errors over the six cases, against 0.27-1.27)."""
+    ``BODY_STRIDE``. Measured (``benchmarks/profile_subset.py``, the six
+    cases in one session): also taking the highlight's and rim's whole made
+    env_plastic's profile 0.31 -> 0.34 s and the estimates' largest errors
+    0.27-1.24 guarded standard errors, against 0.27-1.27: no gain."""
     from ._adequacy import pixel_regions
 
     labels = pixel_regions(geometry).copy()  # the kept labels are read-only
