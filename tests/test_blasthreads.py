@@ -1,14 +1,10 @@
-"""BLAS runs one thread while a fit runs and gets its limits back after (fitter.blasthreads)."""
+"""One BLAS thread while a fit runs (fitter.blasthreads): libraries loaded meanwhile and
+libraries that cannot be limited; what every fit setting shares is in test_fit_settings.py."""
 
-import threading
-
-import numpy as np
 import pytest
 from threadpoolctl import ThreadpoolController
 
-from fitter import blasthreads, serialize
-from fitter.cases import CASES
-from fitter.fit import _drivers
+from fitter import blasthreads
 
 
 def blas_threads() -> int:
@@ -24,75 +20,6 @@ def two_threads():
     assert blas_threads() == 2
     yield
     limiter.restore_original_limits()
-
-
-def test_one_thread_inside_and_restored_after():
-    seen = []
-    blasthreads.one_blas_thread(lambda: seen.append(blas_threads()))()
-    assert seen == [1] and blas_threads() == 2
-
-
-def test_restored_after_an_error():
-    def boom():
-        raise RuntimeError("x")
-
-    with pytest.raises(RuntimeError):
-        blasthreads.one_blas_thread(boom)()
-    assert blas_threads() == 2
-
-
-def test_nested_and_concurrent_calls_restore_once_the_last_returns():
-    inside, release, seen = threading.Event(), threading.Event(), []
-
-    def slow():
-        inside.set()
-        release.wait(5)
-
-    thread = threading.Thread(target=blasthreads.one_blas_thread(slow))
-    thread.start()
-    inside.wait(5)
-    one = blasthreads.one_blas_thread
-    one(one(lambda: seen.append(blas_threads())))()
-    seen.append(blas_threads())  # the other call still runs
-    release.set()
-    thread.join()
-    assert seen == [1, 1] and blas_threads() == 2
-
-
-class _Stop(Exception):
-    pass
-
-
-@pytest.mark.parametrize("entry", ["fit", "fit_batch"])
-def test_fit_entry_points_run_with_one_blas_thread(monkeypatch, entry):
-    seen = []
-
-    def probe(*args, **kwargs):
-        seen.append(blas_threads())
-        raise _Stop
-
-    monkeypatch.setattr(_drivers, "check_fit", probe)
-    target = np.zeros((8, 8, 3)) if entry == "fit" else np.zeros((1, 8, 8, 3))
-    scene = serialize.scene_from_dict(CASES["plastic"]["scene"], "plastic")
-    with pytest.raises(_Stop):
-        getattr(_drivers, entry)(target, scene, "lambert")
-    assert seen == [1] and blas_threads() == 2
-
-
-def test_a_scene_is_prepared_with_one_blas_thread(monkeypatch):
-    from fitter import render
-
-    seen = []
-    real = render.build_geometry
-
-    def probe(*args, **kwargs):
-        seen.append(blas_threads())
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(render, "build_geometry", probe)
-    scene = serialize.scene_from_dict(CASES["plastic"]["scene"], "plastic")
-    render._prepare.__wrapped__(scene.replace(width=9, height=7), np.dtype(np.float64), None)
-    assert seen == [1] and blas_threads() == 2
 
 
 def test_a_library_loaded_inside_is_limited_and_restored(monkeypatch):
