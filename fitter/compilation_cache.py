@@ -7,6 +7,13 @@ Importing this module is free; JAX is imported only when the cache is set.
 ``FAST_COMPILE`` holds the XLA options the fit's executables are compiled with.
 ``cached_arrays`` keeps a scene-independent table (the sky stencil's) beside
 the cache, so a later process loads it instead of computing it again.
+
+fitter's own files there are named ``fitter-<kind>-<made by>-<key>.<ext>``
+(``made_by``: a hash of the sources and libraries that wrote it). Storing one
+removes the files of its kind made by other sources (``remove_stale``): no
+later version reads them, and without this each upgrade (or, in development,
+each edit) left ~0.25 GB of sky tables behind -- a development cache reached
+9.3 GB, 6.9 GB of it tables no code could read. JAX's own entries are JAX's.
 """
 
 from __future__ import annotations
@@ -16,6 +23,7 @@ import functools
 import hashlib
 import os
 import pathlib
+import re
 import tempfile
 
 #: XLA compiler options of the fitter's executables (``jax.jit(...,
@@ -93,18 +101,45 @@ def store_atomically(folder: str, path: str, data: bytes) -> None:
         raise
 
 
+#: (folder, kind, made by) swept by ``remove_stale`` in this process.
+_SWEPT: set = set()
+
+
+def remove_stale(folder: str, kind: str, made_by: str, ext: str, legacy: str) -> int:
+    """Remove the files of ``kind`` in ``folder`` made by other sources
+    (``fitter-<kind>-<other 16 hex>-<32 hex>.<ext>``) and those of the names
+    before the tag (``legacy``, a regular expression of a whole name); the
+    number removed. No other file is touched; a file in use elsewhere that
+    vanishes is made again by its reader (as a corrupt one is)."""
+    if (folder, kind, made_by) in _SWEPT:  # once a process: later files are all ours
+        return 0
+    _SWEPT.add((folder, kind, made_by))
+    ours = re.compile(rf"fitter-{re.escape(kind)}-[0-9a-f]{{16}}-[0-9a-f]{{32}}\.{ext}|{legacy}")
+    keep = f"fitter-{kind}-{made_by}-"
+    removed = 0
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(folder):
+            if ours.fullmatch(entry.name) and not entry.name.startswith(keep):
+                with contextlib.suppress(OSError):
+                    os.unlink(entry.path)
+                    removed += 1
+    return removed
+
+
 def cached_arrays(name: str, key: str, make):
     """``make()`` (a tuple of NumPy arrays), kept in the active cache folder
-    (``active_dir``) under a name hashing ``key``, NumPy's version and fitter's
-    sources, and loaded from there by later processes. Without a cache folder,
-    or on any problem with the file, ``make()`` itself."""
+    (``active_dir``) under a name hashing ``key`` and tagged by NumPy's version
+    and fitter's sources, and loaded from there by later processes. Without a
+    cache folder, or on any problem with the file, ``make()`` itself. Storing
+    one removes this ``name``'s files of other sources (``remove_stale``)."""
     import numpy as np
 
     folder = active_dir()
     if not folder:
         return make()
-    digest = hashlib.sha256((name + key + np.__version__ + sources_fingerprint()).encode())
-    path = os.path.join(folder, f"fitter-{name}-{digest.hexdigest()[:32]}.npz")
+    made_by = hashlib.sha256((np.__version__ + sources_fingerprint()).encode()).hexdigest()[:16]
+    digest = hashlib.sha256((name + key).encode()).hexdigest()[:32]
+    path = os.path.join(folder, f"fitter-{name}-{made_by}-{digest}.npz")
     try:
         with np.load(path, allow_pickle=False) as f:
             return tuple(f[f"a{i}"] for i in range(len(f.files)))
@@ -117,4 +152,5 @@ def cached_arrays(name: str, key: str, make):
         buf = io.BytesIO()
         np.savez(buf, **{f"a{i}": a for i, a in enumerate(arrays)})
         store_atomically(folder, path, buf.getvalue())
+        remove_stale(folder, name, made_by, "npz", rf"fitter-{re.escape(name)}-[0-9a-f]{{32}}\.npz")
     return arrays

@@ -87,3 +87,25 @@ def test_the_stencil_tables_from_disk_equal_the_computed_ones(cache_folder, monk
     assert type(cos) is type(fresh_cos)
     for a, b in zip((*cos, w, *tables), (*fresh_cos, fresh_w, *fresh_tables)):
         assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
+def test_storing_removes_only_this_kinds_files_of_other_sources(cache_folder, monkeypatch):
+    """A table stored by these sources removes the same kind's tables that other
+    sources made (tagged, or named before the tag) and nothing else: another
+    kind's, these sources' other keys, JAX's entries and files fitter did not
+    write stay. Reference: the folder's listing, made by hand."""
+    monkeypatch.setattr(compilation_cache, "_SWEPT", set())
+    other, older = "0123456789abcdef", "f" * 32
+    stale = [f"fitter-probe-{other}-{'a' * 32}.npz", f"fitter-probe-{older}.npz"]
+    kept = [f"fitter-sky-nodes-{other}-{'b' * 32}.npz",  # another kind
+            f"jit_solve-{'c' * 64}-cache",  # JAX's
+            "fitter-probe-notes.npz", "results.npz", "fitter-probe-1234.txt"]  # not ours
+    for name in stale + kept:
+        (cache_folder / name).write_bytes(b"x")
+    compilation_cache.cached_arrays("probe", "k1", lambda: (np.ones(2),))
+    compilation_cache.cached_arrays("probe", "k2", lambda: (np.zeros(2),))
+    names = {p.name for p in cache_folder.iterdir()}
+    assert not names & set(stale)
+    assert set(kept) <= names
+    assert len([n for n in names if n.startswith("fitter-probe-") and n.endswith(".npz")
+                and n not in kept]) == 2  # both of these sources' keys

@@ -96,3 +96,17 @@ def test_a_repeated_fit_traces_nothing_and_states_the_same_errors(tmp_path):
     assert json.loads(again["result"]) == json.loads(first["result"])
     disc = json.loads(first["result"])["stderr_disc"]["lambert.rho_d"]
     assert min(disc) > 0  # the finer render ran (16^2, 1 sample: its error is stated)
+
+
+def test_a_new_trace_removes_the_traces_other_sources_left(tmp_path):
+    """Traces tagged by other sources, and those of the names before the tag,
+    are removed when this run stores its own; a file fitter did not write stays.
+    Reference: the folder's listing."""
+    stale = [tmp_path / f"fitter-trace-{'0' * 16}-{'a' * 32}.jaxexport",
+             tmp_path / f"fitter-{'b' * 32}.jaxexport"]
+    kept = tmp_path / "fitter-notes.jaxexport"
+    for path in stale + [kept]:
+        path.write_bytes(b"x")
+    run_fit(tmp_path)
+    assert not any(path.exists() for path in stale) and kept.exists()
+    assert sorted(tmp_path.glob("fitter-trace-*.jaxexport"))  # this run's own

@@ -21,7 +21,7 @@ import jax
 from jax import export
 
 from ..bsdf.base import Cosines
-from ..compilation_cache import active_dir, sources_fingerprint, store_atomically
+from ..compilation_cache import active_dir, remove_stale, sources_fingerprint, store_atomically
 from ..environment import EnvData
 from ..geometry import Geometry
 from ._problem import Data
@@ -64,8 +64,9 @@ def _cached(f, args, key: str, finish):
     folder = active_dir()
     if not folder:
         return finish(jax.jit(f).lower(*args))
-    digest = hashlib.sha256((key + _source_fingerprint()).encode()).hexdigest()[:32]
-    path = os.path.join(folder, f"fitter-{digest}.jaxexport")
+    made_by = _source_fingerprint()
+    digest = hashlib.sha256((key + made_by).encode()).hexdigest()[:32]
+    path = os.path.join(folder, f"fitter-trace-{made_by[:16]}-{digest}.jaxexport")
     try:
         with open(path, "rb") as fh:
             exported = export.deserialize(bytearray(fh.read()))
@@ -75,6 +76,8 @@ def _cached(f, args, key: str, finish):
     try:
         exported = export.export(jax.jit(f))(*args)
         store_atomically(folder, path, exported.serialize())
+        # (the traces of other sources: no later run reads them)
+        remove_stale(folder, "trace", made_by[:16], "jaxexport", r"fitter-[0-9a-f]{32}\.jaxexport")
         return finish(jax.jit(exported.call).lower(*args))
     except Exception:  # noqa: BLE001 (a cache problem must never break a fit)
         return finish(jax.jit(f).lower(*args))
