@@ -229,13 +229,12 @@ def env_lights(env_type: str, image: np.ndarray, constant: np.ndarray,
 
 def lit_by_environment(scene, material) -> bool:
     """Whether the scene's environment lights some opaque (brdf) lobe of ``material``."""
-    return scene.environment.type != "black" and any(
-        lb.kind == "brdf" for lb in material.lobe_objects)
+    return scene.environment.type != "black" and bool(material.opaque)
 
 
 def unlit(scene, material) -> str | None:
     """Why the material's opaque lobes get no light in ``scene`` (naming the keys), or None."""
-    opaque = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
+    opaque = material.opaque
     if not opaque:
         return None
     power = [getattr(lt, "intensity", None) or getattr(lt, "irradiance", None)

@@ -102,6 +102,11 @@ class Material:
     def lobe_objects(self) -> tuple[Lobe, ...]:
         return tuple(LOBES[n] for n in self.lobes)
 
+    @property
+    def opaque(self) -> list[str]:
+        """Names of the opaque (``brdf``) lobes: those lights and an environment light."""
+        return [lb.name for lb in self.lobe_objects if lb.kind == "brdf"]
+
     def options_of(self, lobe: str) -> dict[str, Any]:
         return lobe_params(dict(self.options), lobe)
 

@@ -295,7 +295,7 @@ class Renderer:
         key_scene, key_dir = _prepare_key(scene, os.path.abspath(base_dir) if base_dir else None)
         self.geometry, self.env, self.sphere = _prepare(
             key_scene, jnp.dtype(dtype), key_dir,
-            env_light=any(lb.kind == "brdf" for lb in material.lobe_objects))
+            env_light=bool(material.opaque))
         self.pixel_index = np.asarray(self.geometry.pixel_index)
 
     @property

@@ -59,6 +59,8 @@ MAX_SAMPLES = 2**23
 #: the probe: Phong e = 300's exponent 3.2 % low with whole-texel cells,
 #: 0.6 % with half, 0.3 % with quarter (``envlight``'s notes).
 FINER_SUN = (4, 16)
+#: The fitted model's sun cells (``envlight``'s defaults), as ``_lighting`` takes them.
+SUN = (envlight.SUN_CELL, envlight.SUN_SUB)
 #: The sky stencil (not refined): its measured accuracy, stated as that relative error of
 #: the non-Lambert lobes' sky term (Lambert's is exact, rho/pi x irradiance):
 #: against a brute-force hemisphere quadrature Beckmann m = 0.1 (the
@@ -225,18 +227,16 @@ def prefetch(problem) -> None:
     flat = np.asarray(r.pixel_index)[problem.rows][rows]
     fine = scene.replace(supersampling=finer_supersampling(scene))
     lit = envlight.lit_by_environment(scene, r.material)
-    sun = (envlight.SUN_CELL, envlight.SUN_SUB)
     # (scene, ``_lighting``'s kind or None, material, pixels, sky-term render) of each
     # geometry ``finer_values`` and ``ring_error`` make
-    jobs = [(fine, sun if lit else None, finer_material(r.material), flat, False)]
+    jobs = [(fine, SUN if lit else None, finer_material(r.material), flat, False)]
     if lit:
         jobs.append((scene, FINER_SUN, r.material, flat, False))
     if flat.size * sum(s.supersampling**2 for s, *_ in jobs) > PREFETCH_SAMPLES:
         return
     if lit and flat.size:
-        brdf = [lb.name for lb in r.material.lobe_objects if lb.kind == "brdf"]
-        jobs.append((scene.replace(lights=()), _half_rings(), _lobes(r.material, brdf),
-                     flat[::RING_STRIDE], True))
+        jobs.append((scene.replace(lights=()), _half_rings(),
+                     _lobes(r.material, r.material.opaque), flat[::RING_STRIDE], True))
     base = problem.base_dir
     keys = [_geometry_key(s, base, r.env_type, cells or False, px) for s, cells, _, px, _ in jobs]
     if keys[0] in _GEOMETRIES:  # a refit: kept
@@ -358,19 +358,18 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
     if rows is not None:
         flat = flat[rows]
     lit = envlight.lit_by_environment(scene, material)
-    sun = _lighting(scene.environment, base, (envlight.SUN_CELL, envlight.SUN_SUB)) \
-        if lit else None
+    sun = _lighting(scene.environment, base, SUN) if lit else None
     fine = scene.replace(supersampling=finer_supersampling(scene))
     key = lambda s, cells: _geometry_key(s, base, env_type, lit and cells, flat)  # noqa: E731
     vals, coverage = _values(fine, finer_material(material), env64, sun, flat, params, env_type,
-                             key(fine, (envlight.SUN_CELL, envlight.SUN_SUB)))
+                             key(fine, SUN))
     if sun is not None and sun.sun_dir.shape[0]:
         finer_sun = _lighting(scene.environment, base, FINER_SUN)
         more = _values(scene, material, env64, finer_sun, flat, params, env_type,
                        key(scene, FINER_SUN))[0]
         if coarse is None:
             coarse = _values(scene, material, env64, sun, flat, params, env_type,
-                             key(scene, (envlight.SUN_CELL, envlight.SUN_SUB)))[0]
+                             key(scene, SUN))[0]
         vals = vals + more - coarse
     return vals, coverage
 
@@ -421,7 +420,7 @@ def sky_stencil_error(data, params, material, env_type, sky) -> np.ndarray:
     ``sky`` (P, 3): the fitted sky term of every opaque lobe (the model minus
     ``coarse_without_sky``); Lambert's is what the others' leave of it."""
     geo = data.geometry
-    brdf = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
+    brdf = material.opaque
     glossy = [n for n in brdf if n != "lambert"]
     if not (brdf and geo.has_sky):
         return np.zeros((0,) + np.shape(geo.background))
@@ -466,7 +465,6 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
     lights no opaque lobe."""
     r = problem.renderer
     scene, material, env_type = r.scene, r.material, r.env_type
-    brdf = [lb.name for lb in material.lobe_objects if lb.kind == "brdf"]
     env64 = load_environment(scene.environment, problem.base_dir)
     lighting = (_lighting(scene.environment, problem.base_dir, _half_rings())
                 if envlight.lit_by_environment(scene, material) else None)
@@ -478,8 +476,8 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
     geo, found, _ = _geometry(dark, env64, lighting, flat, env_type, _geometry_key(
         dark, problem.base_dir, env_type, _half_rings(), flat))
     half = np.zeros((pick.size, 3))
-    half[found] = _sky_term(_host_params(params), geo, env64, _sphere(scene), material, brdf,
-                            env_type)
+    half[found] = _sky_term(_host_params(params), geo, env64, _sphere(scene), material,
+                            material.opaque, env_type)
     out = np.zeros(np.shape(sky))
     out[pick] = (np.asarray(sky, dtype=np.float64)[pick] - half) * (RING_STRIDE / RING_RICHARDSON)
     out[pick[~found]] = 0.0

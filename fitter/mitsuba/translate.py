@@ -91,8 +91,7 @@ def integrator_dict(material: Material, scene: Scene | None = None) -> dict:
     """The integrator; ``scene`` says whether an environment lights opaque lobes."""
     maps = _mappings(material)
     depths = [m.max_depth(opts) for _, m, opts in maps if m.max_depth is not None]
-    if scene is not None and scene.environment.type != "black" and any(
-            lb.kind == "brdf" for lb in material.lobe_objects):
+    if scene is not None and scene.environment.type != "black" and material.opaque:
         depths.append(ENV_OPAQUE_DEPTH)
     if not depths:
         return {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0}
