@@ -127,9 +127,7 @@ def _cached_tables(rings: int = 1):
     the compilation cache when that is on (``compilation_cache.cached_arrays``)."""
     from .compilation_cache import cached_arrays
 
-    # (all rings: the key tables stored before ``rings`` existed have)
-    key = (N_THETA, _FINE) if rings == 1 else (N_THETA, _FINE, rings)
-    return cached_arrays("sky-tables", repr(key), lambda: _tables(rings))
+    return cached_arrays("sky-tables", repr((N_THETA, _FINE, rings)), lambda: _tables(rings))
 
 
 #: Nodes in theta_o (0 .. pi/2, uniform) at which a lobe is evaluated on the stencil.
@@ -174,8 +172,7 @@ def node_geometry(nodes: int = LOBE_NODES, sub: tuple = LOBE_SUB, rings: int = 1
         cos, w = _node_geometry(nodes, tuple(sub), rings)
         return (*cos, w)
 
-    key = (nodes, tuple(sub), _FINE) + (() if rings == 1 else (rings,))
-    *cos, w = cached_arrays("sky-nodes", repr(key), make)
+    *cos, w = cached_arrays("sky-nodes", repr((nodes, tuple(sub), _FINE, rings)), make)
     return Cosines(*cos), w
 
 
