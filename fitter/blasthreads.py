@@ -24,11 +24,10 @@ import threading
 
 from ._switch import SharedSwitch
 
-#: The limits set while the switch is on, restored last first (``catch_up``
-#: adds one when libraries were loaded meanwhile), and how many BLAS libraries
-#: they cover.
+#: The limits set while the switch is on, each with the number of BLAS libraries
+#: loaded when it was set; restored last first (``catch_up`` adds one when
+#: libraries were loaded meanwhile).
 _LIMITERS: list = []
-_COVERED = [0]
 _LOCK = threading.Lock()
 
 
@@ -48,7 +47,7 @@ def _limit():
         try:
             _free()
             blas = _blas()
-            _LIMITERS[:], _COVERED[0] = [blas.limit(limits=1)], len(blas.info())
+            _LIMITERS[:] = [(blas.limit(limits=1), len(blas.info()))]
             _free()
         except Exception:  # noqa: BLE001
             _LIMITERS.clear()
@@ -56,7 +55,7 @@ def _limit():
 
     def restore():
         with _LOCK:
-            for limiter in reversed(_LIMITERS):
+            for limiter, _ in reversed(_LIMITERS):
                 limiter.restore_original_limits()
             _LIMITERS.clear()
             _free()
@@ -72,10 +71,9 @@ def catch_up() -> None:
             return
         try:
             blas = _blas()
-            if len(blas.info()) > _COVERED[0]:
+            if len(blas.info()) > _LIMITERS[-1][1]:
                 _free()
-                _LIMITERS.append(blas.limit(limits=1))
-                _COVERED[0] = len(blas.info())
+                _LIMITERS.append((blas.limit(limits=1), len(blas.info())))
                 _free()
         except Exception:  # noqa: BLE001 (as in ``_limit``)
             pass
