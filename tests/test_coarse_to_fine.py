@@ -28,6 +28,17 @@ FAR = {"lambert.rho_d": [0.5, 0.5, 0.5], "torrance_sparrow.m": 0.3,
        "torrance_sparrow.eta": 1.3}
 #: Noise of the target (so the stated errors are not zero): 1 % of a mid value.
 SIGMA = 2e-3
+#: Coarse to fine states errors from the Jacobian of its last full-size
+#: linearisation, made a Gauss-Newton step before the solution (``_coarse``:
+#: the chord check spares a second one); they may differ from the direct fit's
+#: by this fraction of their own precision, 1 / sqrt(2 dof) (the noise is
+#: estimated from the dof residuals; ~0.9 % here). Measured: 0.10 of it here
+#: (at most 0.09 % apart), 0.14 at 256^2 (``benchmarks/coarse_to_fine.py``).
+STDERR_SHARE_OF_PRECISION = 0.25
+
+
+def _stderr_rtol(n_residuals: int) -> float:
+    return STDERR_SHARE_OF_PRECISION / np.sqrt(2.0 * n_residuals)
 
 
 @pytest.fixture(scope="module")
@@ -47,13 +58,15 @@ def test_coarse_to_fine_reaches_the_direct_fits_optimum_and_errors(target, monke
     fast = _fit(target, True, monkeypatch, progress=lines.append)
     direct = _fit(target, False, monkeypatch)
     assert any(ln.startswith("coarse 32x32: ") for ln in lines), lines
-    assert any("Gauss-Newton step" in ln for ln in lines), lines
+    # two linearisations: the chord step settles after the second (a third without it)
+    assert sum("Gauss-Newton step" in ln for ln in lines) == 2, lines
     assert fast.status == direct.status == "converged"
     for key, value in direct.params.items():
         err = np.asarray(direct.stderr.get(key, 0.0))
         # the same optimum: far inside the stated error (the solvers' tolerance)
         np.testing.assert_allclose(fast.params[key], value, rtol=1e-6, atol=1e-9)
-        np.testing.assert_allclose(fast.stderr.get(key, 0.0), err, rtol=1e-4)
+        np.testing.assert_allclose(fast.stderr.get(key, 0.0), err,
+                                   rtol=_stderr_rtol(3 * direct.n_pixels))
     assert fast.cost == pytest.approx(direct.cost, rel=1e-9)
 
 
@@ -86,8 +99,8 @@ def test_the_jacobian_the_covariance_reuses_is_the_one_at_the_solution(
         target, monkeypatch, coarse):
     # The solve hands its last linearisation to the covariance's block sandwich
     # (``_compile.remember_jacobian``) instead of linearising again: it must be
-    # the Jacobian at the returned point (coarse to fine: taken one step
-    # before it, a step within the solver's tolerance).
+    # the Jacobian at the returned point, to the stated errors' precision
+    # (coarse to fine: made a Gauss-Newton step before it, ``_coarse``).
     import jax
     import jax.numpy as jnp
 
@@ -106,9 +119,10 @@ def test_the_jacobian_the_covariance_reuses_is_the_one_at_the_solution(
     assert 0.5 * float(r @ r) == pytest.approx(res.cost, rel=1e-9)
     J_ref, r_ref = jax.jit(lambda z: _compile.jacobian_full(spec, z, data))(jnp.asarray(z))
     J_ref, r_ref = np.asarray(J_ref), np.asarray(r_ref)
-    # what the covariances use: J^T J (and J's rows, to a step within tolerance)
-    np.testing.assert_allclose(J.T @ J, J_ref.T @ J_ref, rtol=1e-5)
-    assert np.all(np.abs(J - J_ref) <= 1e-3 * np.abs(J_ref).max(axis=0))
+    # what the covariances use: J^T J's inverse (and J's rows)
+    se, se_ref = (np.sqrt(np.diag(np.linalg.inv(j.T @ j))) for j in (J, J_ref))
+    np.testing.assert_allclose(se, se_ref, rtol=_stderr_rtol(r.size) if coarse else 1e-9)
+    assert np.all(np.abs(J - J_ref) <= 1e-2 * np.abs(J_ref).max(axis=0))
     np.testing.assert_allclose(r, r_ref, rtol=0, atol=1e-6 * np.abs(r_ref).max())
 
 
