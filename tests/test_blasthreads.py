@@ -31,8 +31,8 @@ def test_a_library_loaded_inside_is_limited_and_restored(monkeypatch):
     fake = {"threads": 2, "loaded": False}
 
     class Blas:
-        def __init__(self):
-            self.real = real()
+        def __init__(self, rescan=True):
+            self.real = real(rescan)
 
         def info(self):
             extra = [{"num_threads": fake["threads"]}] if fake["loaded"] else []
@@ -62,6 +62,28 @@ def test_a_library_loaded_inside_is_limited_and_restored(monkeypatch):
     blasthreads.one_blas_thread(body)()
     assert seen == [2, (1, 1)]
     assert blas_threads() == 2 and fake["threads"] == 2
+
+
+def test_a_fit_reuses_the_last_scan_and_a_compile_scans_again(monkeypatch):
+    """Turning the switch on does not scan the process's libraries again (1.5 ms
+    a fit); ``catch_up``, run after each compile, does."""
+    from threadpoolctl import ThreadpoolController
+
+    scans = []
+    real = ThreadpoolController.__init__
+
+    def counted(self, *a, **k):
+        scans.append(1)
+        real(self, *a, **k)
+
+    blasthreads.one_blas_thread(lambda: None)()  # a scan to reuse
+    monkeypatch.setattr(ThreadpoolController, "__init__", counted)
+    seen = []
+    blasthreads.one_blas_thread(lambda: seen.append(blas_threads()))()
+    assert seen == [1] and len(scans) == 1  # blas_threads' own scan only
+    blasthreads.one_blas_thread(blasthreads.catch_up)()
+    assert len(scans) == 2
+    assert blas_threads() == 2
 
 
 def test_catch_up_does_nothing_while_off():

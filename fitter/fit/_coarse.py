@@ -62,7 +62,9 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
 
     scene = problem.renderer.scene
     h, w = scene.height // 2, scene.width // 2
-    small = np.asarray(target, dtype=np.float64).reshape(h, 2, w, 2, 3).mean(axis=(1, 3))
+    t = np.asarray(target, dtype=np.float64)
+    # (a mean over the 2 x 2 axes of a reshape: 2.3 ms at 256^2, this 0.5 ms)
+    small = 0.25 * ((t[0::2, 0::2] + t[1::2, 0::2]) + (t[0::2, 1::2] + t[1::2, 1::2]))
     coarse_scene = scene.replace(width=w, height=h, supersampling=scene.supersampling // 2)
     try:
         coarse = Problem.make(small[None], coarse_scene, problem.material,

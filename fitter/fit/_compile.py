@@ -180,8 +180,12 @@ def _batch_fn(spec: Spec, batch: str, **static):
 
 
 def _key(kind: str, spec: Spec, args, once: bool, static: dict):
-    shapes = jax.tree_util.tree_map(lambda a: (jnp.shape(a), jnp.result_type(a)), args)
-    return (kind, spec, tuple(sorted(static.items())), str(shapes), once)
+    # Flattened, not a tree of (shape, dtype) made into a string: 0.1 ms, not 1.1
+    # ms, four times in a compiled fit.
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    shapes = tuple((np.shape(a), str(a.dtype if hasattr(a, "dtype") else jnp.result_type(a)))
+                   for a in leaves)
+    return (kind, spec, tuple(sorted(static.items())), str(tree), shapes, once)
 
 
 def _function(kind: str, spec: Spec, static: dict):
