@@ -12,9 +12,10 @@ separately):
   ``optimistix.least_squares``, dispatched from Python once per step. Where
   ``fitter.fit`` starts coarse (LM on a large image, ``fitter.fit._coarse``),
   so does the trace: LM steps on the 2 x 2 averaged image, then the
-  full-size Gauss-Newton steps, each recorded. The product's own figures
-  (``fitter.fit`` cold: compile + run; warm: run) are measured in the same
-  process.
+  full-size Gauss-Newton steps, each recorded; the fastest of
+  ``TRACE_REPEATS`` traces is kept. The product's own figures (``fitter.fit``
+  cold: compile + run; warm: run, the least of ``WARM_REPEATS``) are
+  measured in the same process.
 * scipy (baseline A): ``least_squares``'s per-iteration ``callback``.
 * Mitsuba (baseline B): one record per Adam iteration.
 
@@ -51,8 +52,10 @@ BASELINE_CASE = "plastic"
 #: Relative error floor: a parameter whose truth is below it is compared absolutely.
 REL_FLOOR = 1e-3
 RTOL, ATOL = 1e-8, 1e-10
-#: fitter.fit's default tolerances (the coarse-to-fine finish settles on them).
-RTOL_PRODUCT, ATOL_PRODUCT = 1e-6, 1e-8
+#: ``fitter.fit``'s compiled figures: the least time of this many calls.
+WARM_REPEATS = 5
+#: The JAX methods' step traces: the fastest of this many runs.
+TRACE_REPEATS = 3
 TRACE_STEPS = {"lm": 100, "dogleg": 100, "bfgs": 400, "adam": 1500}
 
 
@@ -196,29 +199,40 @@ def coarse_problem(method, job, base, target, init):
 
 def finish_fine(prob, z, samples, t_run):
     """The full-size Gauss-Newton finish of ``fitter.fit._coarse.solve`` from the
-    coarse solution ``z``, one recorded sample per step. Returns (z, t_run,
-    compile seconds)."""
+    coarse solution ``z``, one recorded sample per step (a settling chord step
+    too, as the product takes it). Returns (z, t_run, compile seconds)."""
     import functools
 
     import jax
 
-    from fitter.fit import _coarse
+    from fitter.fit import _coarse, _solvers
     from fitter.fit._compile import gauss_newton_step
+    from fitter.fit._problem import residuals
 
     step = jax.jit(functools.partial(gauss_newton_step, prob.spec))
+    forward = jax.jit(lambda z, data: residuals(z, data, prob.spec))
     t0 = time.perf_counter()
     jax.block_until_ready(step(jax.numpy.asarray(z), prob.data))
+    jax.block_until_ready(forward(jax.numpy.asarray(z), prob.data))
     compile_s = time.perf_counter() - t0
+    settled = lambda z, dz: np.all(np.abs(dz) <= _solvers.ATOL + _solvers.RTOL * np.abs(z))  # noqa: E731
     z = np.asarray(z, dtype=np.float64)
     for _ in range(_coarse.MAX_FINE_STEPS):
         t0 = time.perf_counter()
-        out = step(jax.numpy.asarray(z), prob.data)
-        dz = np.asarray(out[3])  # waits for the step
+        R, _, J, dz, _ = (np.asarray(a) for a in step(jax.numpy.asarray(z), prob.data))
         t_run += time.perf_counter() - t0
-        settled = np.all(np.abs(dz) <= ATOL_PRODUCT + RTOL_PRODUCT * np.abs(z))
+        done = settled(z, dz)
         z = z + dz
         samples.append((len(samples), t_run, prob.params(z)))
-        if settled:
+        if done:
+            break
+        t0 = time.perf_counter()
+        r1 = np.asarray(forward(jax.numpy.asarray(z), prob.data))
+        dz1 = -np.linalg.solve(R.T @ R, J.T @ r1)
+        t_run += time.perf_counter() - t0
+        if settled(z, dz1):
+            z = z + dz1
+            samples.append((len(samples), t_run, prob.params(z)))
             break
     return z, t_run, compile_s
 
@@ -228,40 +242,51 @@ def run_jax(method, job, base, target, init, max_steps):
     import jax
 
     import fitter
+    from fitter.fit import _solvers
 
     solver = JAX_METHODS[method]
     kw = dict(init=init, fixed=job.fixed, solver=solver, base_dir=base)
     cold = fitter.fit(target, job.scene, job.material, **kw)
-    warm = fitter.fit(target, job.scene, job.material, **kw)
     # What a user who gives no start gets (the CLI's default): the lobe defaults.
     plain = {**kw, "init": None}
     fitter.fit(target, job.scene, job.material, **plain)
-    defaults = fitter.fit(target, job.scene, job.material, **plain)
+    # The compiled calls' least time of WARM_REPEATS, interleaved (the machine is shared).
+    warms, plains = [], []
+    for _ in range(WARM_REPEATS):
+        warms.append(fitter.fit(target, job.scene, job.material, **kw))
+        plains.append(fitter.fit(target, job.scene, job.material, **plain))
+    warm = min(warms, key=lambda r: r.time_run)
+    defaults = min(plains, key=lambda r: r.time_run)
     prob = _Problem(job, base, target, init)
     coarse = coarse_problem(method, job, base, target, init)
     # What fitter.fit does: a large image starts on its 2 x 2 average
     # (fitter.fit._coarse), stepped here like the direct solve.
     first = coarse or prob
     run_init, step, compile_s = stepper(first, solver, *(
-        (RTOL_PRODUCT, ATOL_PRODUCT) if coarse else (RTOL, ATOL)))
-    z = jax.numpy.asarray(prob.z0())
-    samples = [(0, 0.0, prob.params(z))]
-    t_run = 0.0
-    t0 = time.perf_counter()
-    dyn = run_init(z)
-    jax.block_until_ready(dyn)
-    t_run += time.perf_counter() - t0
-    for i in range(1, max_steps + 1):
+        (_solvers.RTOL, _solvers.ATOL) if coarse else (RTOL, ATOL)))
+    best = None
+    for rep in range(TRACE_REPEATS):  # the fastest trace (each is ~0.05 s: a hiccup shows)
+        z = jax.numpy.asarray(prob.z0())
+        samples = [(0, 0.0, prob.params(z))]
+        t_run = 0.0
         t0 = time.perf_counter()
-        z, dyn, done = step(z, dyn)
-        done = bool(done)  # waits for the step
+        dyn = run_init(z)
+        jax.block_until_ready(dyn)
         t_run += time.perf_counter() - t0
-        samples.append((i, t_run, prob.params(z)))
-        if done:
-            break
-    if coarse is not None:
-        z, t_run, compile_gn = finish_fine(prob, z, samples, t_run)
-        compile_s += compile_gn
+        for i in range(1, max_steps + 1):
+            t0 = time.perf_counter()
+            z, dyn, done = step(z, dyn)
+            done = bool(done)  # waits for the step
+            t_run += time.perf_counter() - t0
+            samples.append((i, t_run, prob.params(z)))
+            if done:
+                break
+        if coarse is not None:
+            z, t_run, compile_gn = finish_fine(prob, z, samples, t_run)
+            compile_s += compile_gn if rep == 0 else 0.0
+        if best is None or t_run < best[0]:
+            best = (t_run, samples)
+    samples = best[1]
     product = {"compile_s": cold.time_compile, "fit_cold_s": cold.time_compile + cold.time_run,
                "fit_warm_s": warm.time_run, "iterations": warm.iterations,
                "fit_warm_defaults_s": defaults.time_run,
