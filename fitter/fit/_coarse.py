@@ -38,9 +38,9 @@ MAX_FINE_STEPS = 4
 #: Off switch (benchmarks compare both ways).
 ENABLED = True
 #: A chord step settles the finish only where the residuals it linearises with
-#: a J one step old are off by at most this fraction of their norm
-#: (``_chord_error``): the noise then hides it. On a noise-free target the
-#: residuals are rounding and the finish linearises again.
+#: a J one step old are off by at most this fraction of their norm at the
+#: optimum (``_chord_error``): the noise then hides it. On a noise-free target
+#: those residuals are rounding and the finish linearises again.
 CHORD_RTOL = 1e-4
 
 
@@ -114,7 +114,7 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
         r1 = residuals_at_points(problem.spec, (z + dz)[None], data)[0]
         dz1 = -np.linalg.solve(R.T @ R, J.T @ r1)
         if (0.5 * float(r1 @ r1) <= cost and settled(z + dz, dz1)
-                and _chord_error(r, r1, J, dz, dz1) <= CHORD_RTOL * np.linalg.norm(r1)):
+                and _chord_error(r, r1, J, dz, dz1) <= CHORD_RTOL * np.linalg.norm(r1 + J @ dz1)):
             z, r, dz = z + dz, r1, dz1
             break
         prev, z = cost, z + dz
