@@ -49,3 +49,27 @@ def test_shift_of_several_changes_is_each_ones_least_squares_shift():
         np.testing.assert_allclose(both[:, k], np.linalg.lstsq(J, d[:, k], rcond=None)[0],
                                    rtol=1e-9)
         np.testing.assert_allclose(_discretisation.shift(J, d[:, k]), both[:, k], rtol=1e-12)
+
+
+def test_the_finer_models_pixels_stand_for_their_strata_within_its_sample_budget(monkeypatch):
+    """Every highlight and rim pixel, every BODY_STRIDE-th body pixel; beyond
+    MAX_FINER_SAMPLES every s-th of each. Reference: the strata's own sizes
+    (each pick's weight is its stratum's pixels per pick, a Horvitz-Thompson
+    sum) and the budget."""
+    rng = np.random.default_rng(0)
+    labels = rng.choice([0, 0, 0, 1, 2], size=20000)
+    scene = fitter.Scene(width=256, height=256, supersampling=4)
+    per_pixel = _discretisation.finer_supersampling(scene) ** 2
+    for budget in (2**30, 20000 * per_pixel // 10):
+        monkeypatch.setattr(_discretisation, "MAX_FINER_SAMPLES", budget)
+        rows, weight = _discretisation.sample_rows(labels, scene)
+        assert np.all(np.diff(rows) > 0)
+        for sharp in (False, True):
+            mine = (labels[rows] != 0) == sharp
+            np.testing.assert_allclose(weight[mine].sum(), np.sum((labels != 0) == sharp))
+        if budget == 2**30:
+            assert np.array_equal(rows[labels[rows] != 0], np.nonzero(labels != 0)[0])
+            stride = _discretisation.BODY_STRIDE
+            assert np.sum(labels[rows] == 0) == np.ceil(np.sum(labels == 0) / stride)
+        else:
+            assert rows.size * per_pixel <= 1.01 * budget

@@ -24,10 +24,8 @@ of half the rings (``ring_error``, Richardson: the difference / 3), and its
 measured accuracy against Mitsuba (``SKY_STENCIL_ACCURACY``; Lambert's,
 ``IRRADIANCE_ACCURACY``) times the fitted sky term of each kind of lobe is
 propagated the same way, all independent.
-Cost: finer geometries without sky tabulation, renders of the sampled
-fitted pixels and of the sky term, one least-squares solve for every shift
-with the Jacobian the systematic part already computed
-(``benchmarks/discretisation_cost.py``).
+Cost: finer geometries, renders of sampled pixels, one solve for every shift
+with the Jacobian already made (``benchmarks/discretisation_cost.py``).
 """
 
 from __future__ import annotations
@@ -79,6 +77,9 @@ IRRADIANCE_ACCURACY = 0.004
 #: Body pixels (away from highlights and the rim: a smooth model error) the
 #: finer model renders: every this many-th, each standing for this many.
 BODY_STRIDE = 4
+#: The finer model's film samples (``sample_rows``) near this: 256^2 (0.87 M) has
+#: all; 1024^2 (5.4 M) made its NumPy geometry in 12 s of each compiled fit.
+MAX_FINER_SAMPLES = 2**20
 
 
 def finer_supersampling(scene) -> int:
@@ -169,16 +170,20 @@ def _lighting(environment, base_dir, kind):
     return None if lighting is None else lighting._replace(sky=None)
 
 
-def sample_rows(labels) -> tuple[np.ndarray, np.ndarray]:
+def sample_rows(labels, scene) -> tuple[np.ndarray, np.ndarray]:
     """(rows (M,) of the fitted pixels the finer model renders, their weights (M,)):
     every highlight and rim pixel (``_adequacy.pixel_regions`` 1, 2: where the
-    discretisation error sits), every ``BODY_STRIDE``-th body pixel, weighted
-    by the body's pixels per pick so J^T d stays an estimate of the whole sum."""
+    error sits) and ``BODY_STRIDE``-th body pixel, every s-th of each beyond
+    ``MAX_FINER_SAMPLES`` (``scene``'s finer samples), each weighted by its
+    stratum's pixels per pick so J^T d stays an estimate of the whole sum."""
     labels = np.asarray(labels)
-    body = np.nonzero(labels == 0)[0]
-    picked = body[::BODY_STRIDE]
-    rows = np.sort(np.concatenate([np.nonzero(labels != 0)[0], picked]))
-    weight = np.where(labels[rows] == 0, body.size / max(picked.size, 1), 1.0)
+    sharp, body = np.nonzero(labels != 0)[0], np.nonzero(labels == 0)[0]
+    n = (sharp.size + body[::BODY_STRIDE].size) * finer_supersampling(scene) ** 2
+    s = max(1, int(np.ceil(n / MAX_FINER_SAMPLES)))
+    picks = sharp[::s], body[::BODY_STRIDE * s]
+    rows = np.sort(np.concatenate(picks))
+    weight = np.where(labels[rows] == 0, body.size / max(picks[1].size, 1),
+                      sharp.size / max(picks[0].size, 1))
     return rows, weight
 
 
@@ -212,18 +217,16 @@ def prefetch(problem) -> None:
     (``finer_values``) and the half-ring one (``ring_error``) on a thread, while
     the solver runs, and compiling the executables that render them (``_render``).
 
-    They depend on the scene, the fitted pixels and the parameters' shapes
-    only, not on the fit. The geometries are NumPy (0.1 s at the quickstart's
-    128^2, 8 x 8 samples; env_plastic's two with sun cells 1.9 s), which runs
-    beside XLA's execution of the solve and the profile; XLA's compile (0.5 s
-    for the dielectric at 128^2) releases the interpreter too. The half-ring
-    geometry comes last: its tabulation and compile overlap the cost profile's
-    compile, which leaves a core free. Whatever fails on the thread is done
-    again where needed (``_geometry``, ``_render``); ``wait`` joins it.
+    They depend on the scene, pixels and parameters' shapes, not on the fit.
+    NumPy (0.1 s at the quickstart's 128^2; env_plastic's two with sun cells
+    1.9 s) and XLA's compile release the interpreter to the solve and the
+    profile; the half-ring geometry comes last, beside the profile's compile.
+    What fails here is done again where needed (``_geometry``, ``_render``);
+    ``wait`` joins the thread.
     """
     r = problem.renderer
     scene = r.scene
-    rows, _ = sample_rows(_adequacy.pixel_regions(problem.geometry))
+    rows, _ = sample_rows(_adequacy.pixel_regions(problem.geometry), scene)
     flat = np.asarray(r.pixel_index)[problem.rows][rows]
     fine = scene.replace(supersampling=finer_supersampling(scene))
     lit = envlight.lit_by_environment(scene, r.material)

@@ -226,7 +226,8 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
             "hac_over_stat_max": float(np.sqrt(np.max(
                 np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300))))}
     t0 = time.perf_counter()
-    rows, share = _discretisation.sample_rows(_adequacy.pixel_regions(data.geometry))
+    rows, share = _discretisation.sample_rows(_adequacy.pixel_regions(data.geometry),
+                                              problem.renderer.scene)
     finer = np.zeros_like(model)
     coverage = np.zeros(model.shape[0])
     coarse = _discretisation.coarse_without_sky(data, params, spec.material, spec.env_type,
