@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._compile import compiled, remember_jacobian, residuals_at_points
+from ._compile import compile_ahead, compiled, remember_jacobian, residuals_at_points
 from ._setup import Problem
 
 #: Fits of at least this many pixels start coarse (smaller ones are cheap
@@ -89,6 +89,10 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
     coarse = dataclasses.replace(coarse, init_full=problem.init_full, blocks=problem.blocks,
                                  loss=problem.loss, loss_scale=problem.loss_scale,
                                  static=problem.static)
+    # The full-size finish's executables compiled on threads beside the coarse
+    # solve's compile (a first run: each 0.1-0.5 s).
+    compile_ahead("gauss_newton", problem.spec, (problem.cast(np.asarray(z0s[0])), data))
+    compile_ahead("residuals", problem.spec, (problem.cast(np.asarray(z0s[:1])), data))
     zs, codes, steps, _, best, _, t_compile = solve_starts(
         coarse, z0s, coarse.data(0), say, f"coarse {w}x{h}: ")
     if outcome_table().get(int(codes[best]), ("",))[0] != "converged":
