@@ -14,8 +14,8 @@ compilation cache and the exported traces), then ``--repeat`` times; the table g
 median and the minimum of the wall time (process start to exit, `os.wait4`),
 the median of each stage the CLI prints, and the peak RSS. ``--before`` checks
 the commit out with ``git worktree`` in a temporary folder and runs it with
-the same interpreter (``PYTHONPATH``); its compiled code is cached apart
-(the trace cache keys on the sources).
+the same interpreter (``PYTHONPATH``); each tree has its own cache folder
+(``FITTER_CACHE_DIR``, filled by the untimed run).
 """
 
 from __future__ import annotations
@@ -34,11 +34,11 @@ STAGES = (("fit", r"^fitting .*?: ([\d.]+) s"), ("render", r"^rendering the fit:
           ("validate", r"^validating .*?: ([\d.]+) s"), ("outputs", r"^writing outputs: ([\d.]+) s"))
 
 
-def run_once(tree: str, config: str, validate: bool, out: str) -> dict:
+def run_once(tree: str, config: str, validate: bool, out: str, cache: str) -> dict:
     cmd = [sys.executable, "-m", "fitter", "fit", os.path.join(tree, config), "--out", out]
     if not validate:
         cmd.append("--no-validate")
-    env = {**os.environ, "PYTHONPATH": tree}
+    env = {**os.environ, "PYTHONPATH": tree, "FITTER_CACHE_DIR": cache}
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=tree, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
@@ -73,16 +73,21 @@ def main(argv=None) -> int:
     for _, tree in trees:
         subprocess.run([sys.executable, "-m", "compileall", "-q", os.path.join(tree, "fitter")],
                        check=True)
+    # Each tree its own cache folder: a tree removes the files other sources
+    # made (``compilation_cache.remove_stale``), so sharing one, each run of
+    # one tree would find the other's and none of its own.
+    cache = {name: os.path.join(tmp, f"cache-{i}") for i, (name, _) in enumerate(trees)}
     modes = [False] + ([] if args.no_validated else [True])
     records: dict = {}
     try:
         for validate in modes:
             for name, tree in trees:  # untimed: warm caches
-                run_once(tree, args.config, validate, os.path.join(tmp, "out"))
+                run_once(tree, args.config, validate, os.path.join(tmp, "out"), cache[name])
             for _ in range(args.repeat):
                 for name, tree in trees:
                     records.setdefault((name, validate), []).append(
-                        run_once(tree, args.config, validate, os.path.join(tmp, "out")))
+                        run_once(tree, args.config, validate, os.path.join(tmp, "out"),
+                                 cache[name]))
     finally:
         if args.before:
             subprocess.run(["git", "-C", ROOT, "worktree", "remove", "--force", wt], check=False)
