@@ -215,7 +215,10 @@ def finish_fine(prob, z, samples, t_run):
     jax.block_until_ready(step(jax.numpy.asarray(z), prob.data))
     jax.block_until_ready(forward(jax.numpy.asarray(z), prob.data))
     compile_s = time.perf_counter() - t0
-    settled = lambda z, dz: np.all(np.abs(dz) <= _solvers.ATOL + _solvers.RTOL * np.abs(z))  # noqa: E731
+
+    def settled(z, dz):
+        return np.all(np.abs(dz) <= _solvers.ATOL + _solvers.RTOL * np.abs(z))
+
     z = np.asarray(z, dtype=np.float64)
     for _ in range(_coarse.MAX_FINE_STEPS):
         t0 = time.perf_counter()

@@ -101,7 +101,10 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
     step, tc = compiled("gauss_newton", problem.spec, (problem.cast(z), data))
     t_compile += tc
     rtol, atol = problem.static["rtol"], problem.static["atol"]
-    settled = lambda z, dz: np.all(np.abs(dz) <= atol + rtol * np.abs(z))  # noqa: E731
+
+    def settled(z, dz):
+        return np.all(np.abs(dz) <= atol + rtol * np.abs(z))
+
     prev = np.inf
     for k in range(1, MAX_FINE_STEPS + 1):
         R, r, J, dz, cost = jax.tree_util.tree_map(np.asarray, step(problem.cast(z), data))
