@@ -10,10 +10,10 @@ the cache, so a later process loads it instead of computing it again.
 
 fitter's own files there are named ``fitter-<kind>-<made by>-<key>.<ext>``
 (``made_by``: a hash of the sources and libraries that wrote it). Storing one
-removes the files of its kind made by other sources (``remove_stale``): no
-later version reads them, and without this each upgrade (or, in development,
-each edit) left ~0.25 GB of sky tables behind -- a development cache reached
-9.3 GB, 6.9 GB of it tables no code could read. JAX's own entries are JAX's.
+removes the files of its kind made by other sources but the last other one
+(``remove_stale``): without this each upgrade (or, in development, each edit)
+left ~0.25 GB of sky tables behind -- a development cache reached 9.3 GB, 6.9
+GB of it tables no code could read. JAX's own entries are JAX's.
 """
 
 from __future__ import annotations
@@ -107,22 +107,35 @@ _SWEPT: set = set()
 
 def remove_stale(folder: str, kind: str, made_by: str, ext: str, legacy: str) -> int:
     """Remove the files of ``kind`` in ``folder`` made by other sources
-    (``fitter-<kind>-<other 16 hex>-<32 hex>.<ext>``) and those of the names
-    before the tag (``legacy``, a regular expression of a whole name); the
-    number removed. No other file is touched; a file in use elsewhere that
-    vanishes is made again by its reader (as a corrupt one is)."""
+    (``fitter-<kind>-<other 16 hex>-<32 hex>.<ext>``), except those of the
+    other sources that wrote last, and those of the names before the tag
+    (``legacy``, a regular expression of a whole name); the number removed.
+    Two versions used in turn on one folder (an installed one and a checkout)
+    so keep each other's files instead of making them again on every run,
+    and a string of versions (each edit, in development) leaves two behind.
+    No other file is touched; a file in use elsewhere that vanishes is made
+    again by its reader (as a corrupt one is)."""
     if (folder, kind, made_by) in _SWEPT:  # once a process: later files are all ours
         return 0
     _SWEPT.add((folder, kind, made_by))
-    ours = re.compile(rf"fitter-{re.escape(kind)}-[0-9a-f]{{16}}-[0-9a-f]{{32}}\.{ext}|{legacy}")
-    keep = f"fitter-{kind}-{made_by}-"
-    removed = 0
+    tagged = re.compile(rf"fitter-{re.escape(kind)}-([0-9a-f]{{16}})-[0-9a-f]{{32}}\.{ext}")
+    before_tags = re.compile(legacy)
+    doomed, others = [], {}
     with contextlib.suppress(OSError):
         for entry in os.scandir(folder):
-            if ours.fullmatch(entry.name) and not entry.name.startswith(keep):
+            m = tagged.fullmatch(entry.name)
+            if m is not None and m.group(1) != made_by:
                 with contextlib.suppress(OSError):
-                    os.unlink(entry.path)
-                    removed += 1
+                    others.setdefault(m.group(1), []).append((entry.stat().st_mtime, entry.path))
+            elif m is None and before_tags.fullmatch(entry.name):
+                doomed.append(entry.path)
+    last = max(others, key=lambda tag: max(others[tag])[0], default=None)
+    doomed += [path for tag, files in others.items() if tag != last for _, path in files]
+    removed = 0
+    for path in doomed:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+            removed += 1
     return removed
 
 
@@ -131,7 +144,8 @@ def cached_arrays(name: str, key: str, make):
     (``active_dir``) under a name hashing ``key`` and tagged by NumPy's version
     and fitter's sources, and loaded from there by later processes. Without a
     cache folder, or on any problem with the file, ``make()`` itself. Storing
-    one removes this ``name``'s files of other sources (``remove_stale``)."""
+    one removes this ``name``'s files of other sources but the last other's
+    (``remove_stale``)."""
     import numpy as np
 
     folder = active_dir()

@@ -91,17 +91,24 @@ def test_the_stencil_tables_from_disk_equal_the_computed_ones(cache_folder, monk
 
 def test_storing_removes_only_this_kinds_files_of_other_sources(cache_folder, monkeypatch):
     """A table stored by these sources removes the same kind's tables that other
-    sources made (tagged, or named before the tag) and nothing else: another
-    kind's, these sources' other keys, JAX's entries and files fitter did not
-    write stay. Reference: the folder's listing, made by hand."""
+    sources made (tagged, or named before the tag) but those of the other
+    sources that wrote last, and nothing else: another kind's, these sources'
+    other keys, JAX's entries and files fitter did not write stay. Reference:
+    the folder's listing, made by hand."""
+    import os
+
     monkeypatch.setattr(compilation_cache, "_SWEPT", set())
-    other, older = "0123456789abcdef", "f" * 32
-    stale = [f"fitter-probe-{other}-{'a' * 32}.npz", f"fitter-probe-{older}.npz"]
-    kept = [f"fitter-sky-nodes-{other}-{'b' * 32}.npz",  # another kind
+    older, last, untagged = "0123456789abcdef", "fedcba9876543210", "f" * 32
+    stale = [f"fitter-probe-{older}-{'a' * 32}.npz", f"fitter-probe-{older}-{'d' * 32}.npz",
+             f"fitter-probe-{untagged}.npz"]
+    kept = [f"fitter-probe-{last}-{'a' * 32}.npz",  # the other sources that wrote last
+            f"fitter-sky-nodes-{older}-{'b' * 32}.npz",  # another kind
             f"jit_solve-{'c' * 64}-cache",  # JAX's
             "fitter-probe-notes.npz", "results.npz", "fitter-probe-1234.txt"]  # not ours
     for name in stale + kept:
         (cache_folder / name).write_bytes(b"x")
+    for name, when in ((stale[0], 1000), (stale[1], 2000), (kept[0], 3000)):
+        os.utime(cache_folder / name, (when, when))
     compilation_cache.cached_arrays("probe", "k1", lambda: (np.ones(2),))
     compilation_cache.cached_arrays("probe", "k2", lambda: (np.zeros(2),))
     names = {p.name for p in cache_folder.iterdir()}

@@ -99,14 +99,19 @@ def test_a_repeated_fit_traces_nothing_and_states_the_same_errors(tmp_path):
 
 
 def test_a_new_trace_removes_the_traces_other_sources_left(tmp_path):
-    """Traces tagged by other sources, and those of the names before the tag,
-    are removed when this run stores its own; a file fitter did not write stays.
-    Reference: the folder's listing."""
+    """Traces tagged by other sources but the ones that wrote last, and those of
+    the names before the tag, are removed when this run stores its own; a file
+    fitter did not write stays. Reference: the folder's listing."""
+    import os
+
     stale = [tmp_path / f"fitter-trace-{'0' * 16}-{'a' * 32}.jaxexport",
              tmp_path / f"fitter-{'b' * 32}.jaxexport"]
-    kept = tmp_path / "fitter-notes.jaxexport"
-    for path in stale + [kept]:
+    kept = [tmp_path / "fitter-notes.jaxexport",
+            tmp_path / f"fitter-trace-{'1' * 16}-{'a' * 32}.jaxexport"]  # wrote last
+    for path in stale + kept:
         path.write_bytes(b"x")
+    os.utime(stale[0], (1000, 1000))
+    os.utime(kept[1], (2000, 2000))
     run_fit(tmp_path)
-    assert not any(path.exists() for path in stale) and kept.exists()
+    assert not any(path.exists() for path in stale) and all(path.exists() for path in kept)
     assert sorted(tmp_path.glob("fitter-trace-*.jaxexport"))  # this run's own
