@@ -5,7 +5,8 @@ Cases: 256^2 plastic (lambert + torrance_sparrow, 4x4 samples, JAX target at
 the truth + noise sigma 2e-3, from the lobe defaults), the 128^2 dielectric
 (``configs/dielectric.toml`` on its Mitsuba target, from the config's start)
 and, by ``--cases``, the four env cases (``configs/env_*.toml``, Mitsuba
-targets). Each case is fitted once (compiling everything), the profile's
+targets) and three sharp highlights (``_sharp``: Beckmann m = 0.05 and 0.02
+at 128^2, 0.01 at 192^2). Each case is fitted once (compiling everything), the profile's
 inputs are captured at the fit's solution, then the profile runs ``--repeat``
 times each way, interleaved; the line gives the minima, the verdicts and the
 largest |estimated - whole-image| chi^2 rise over the points, also in the
@@ -39,6 +40,24 @@ def _plastic():
     clean = np.asarray(fitter.render(truth, job.scene, job.material, base_dir=base))
     target = clean + np.random.default_rng(0).normal(0.0, 2e-3, clean.shape)
     return lambda: fitter.fit(target, job.scene, job.material, fixed=job.fixed, base_dir=base)
+
+
+def _sharp(m: float, res: int):
+    """A sharp highlight: lambert + Beckmann (Smith) m at res^2, two point
+    lights, 4x4 samples, JAX target at the truth + noise sigma 2e-3, fitted from
+    the truth (the profile is what is measured, not the start)."""
+    import fitter
+
+    scene = fitter.Scene(width=res, height=res, supersampling=4, lights=(
+        fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),
+        fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0))))
+    material = fitter.Material.make(["lambert", "torrance_sparrow"],
+                                    {"torrance_sparrow.geometry": "smith"})
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "torrance_sparrow.m": m,
+             "torrance_sparrow.eta": 1.5}
+    clean = np.asarray(fitter.render(material.full_params(truth), scene, material))
+    target = clean + np.random.default_rng(0).normal(0.0, 2e-3, clean.shape)
+    return lambda: fitter.fit(target, scene, material, init=truth)
 
 
 def _config(case: str):
@@ -98,6 +117,9 @@ def main(argv=None) -> int:
     from fitter.fit import _drivers, _profile
 
     makers = {"plastic 256²": _plastic,
+              "sharp m=0.05 128²": functools.partial(_sharp, 0.05, 128),
+              "sharp m=0.02 128²": functools.partial(_sharp, 0.02, 128),
+              "sharp m=0.01 192²": functools.partial(_sharp, 0.01, 192),
               **{f"{c} 128²": functools.partial(_config, c)
                  for c in ("dielectric", "env_plastic", "env_phong", "env_oren_nayar",
                            "env_point")}}

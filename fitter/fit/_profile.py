@@ -54,12 +54,14 @@ SE_FLOOR = 0.5
 #: (the rim held 90 % of env_plastic's subset's samples when taken whole);
 #: point-lit, highlight and rim held 80 % of 256^2 plastic's subset.
 #: ``benchmarks/profile_subset.py``, the estimated rises' largest error against
-#: every pixel's, in guarded standard errors (``GUARD``), every highlight and
-#: rim pixel -> these strides: env_plastic / env_phong / env_oren_nayar /
-#: env_point 1.74 / 0.81 / 0.61 / 0.92 -> 0.81 / 0.66 / 0.27 / 1.12; 256^2
-#: plastic 0.62 -> 0.64, 128^2 dielectric 0.87 -> 1.27. The profile: env_plastic
-#: 0.53 -> 0.25 s, 256^2 plastic 0.116 -> 0.065 s, dielectric 0.30 -> 0.15 s.
-HIGHLIGHT_STRIDE, RIM_STRIDE = 2, 8
+#: every pixel's, in guarded standard errors (``GUARD``), (highlight, rim)
+#: strides (1, 1) -> (2, 8) -> (4, 8): env_plastic 1.74 -> 0.81 -> 0.77, env_phong 0.81
+#: -> 0.66 -> 1.02, env_oren_nayar 0.61 -> 0.27 -> 0.34, env_point 0.92 -> 1.12
+#: -> 1.01, 256^2 plastic 0.62 -> 0.64 -> 0.38, 128^2 dielectric 0.87 -> 1.27 ->
+#: 1.27; sharp highlights (``_sharp``) Beckmann m = 0.05 / 0.02 at 128^2, 0.01
+#: at 192^2: 0.81 / 0.89 / 0.37 at 2, 1.25 / 1.13 / 0.72 at 4. 256^2 plastic's
+#: compiled fit 0.117 -> 0.098 s from 2 to 4 (profile 29 -> 21 ms, same run).
+HIGHLIGHT_STRIDE, RIM_STRIDE = 4, 8
 #: A body pixel whose linear response to a profile step is this many times
 #: the step's mean response is taken whole (``standing_out``, ``strata``).
 STAND_OUT = 10.0
