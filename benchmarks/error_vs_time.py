@@ -200,40 +200,34 @@ def coarse_problem(method, job, base, target, init):
 def finish_fine(prob, z, samples, t_run):
     """The full-size Gauss-Newton finish of ``fitter.fit._coarse.solve`` from the
     coarse solution ``z``, one recorded sample per step (a settling chord step
-    too, as the product takes it). Returns (z, t_run, compile seconds)."""
-    import functools
-
-    import jax
+    too, ``_coarse.chord_step``), with the product's executables and
+    tolerances. Returns (z, t_run, compile seconds)."""
+    import jax.numpy as jnp
 
     from fitter.fit import _coarse, _solvers
-    from fitter.fit._compile import gauss_newton_step
-    from fitter.fit._problem import residuals
+    from fitter.fit._compile import compiled, residuals_at_points
 
-    step = jax.jit(functools.partial(gauss_newton_step, prob.spec))
-    forward = jax.jit(lambda z, data: residuals(z, data, prob.spec))
+    spec, data = prob.spec, prob.data
+    rtol, atol = _solvers.RTOL, _solvers.ATOL
     t0 = time.perf_counter()
-    jax.block_until_ready(step(jax.numpy.asarray(z), prob.data))
-    jax.block_until_ready(forward(jax.numpy.asarray(z), prob.data))
+    step, _ = compiled("gauss_newton", spec, (jnp.asarray(z), data))
+    residuals_at_points(spec, np.asarray(z)[None], data)  # compiles it
     compile_s = time.perf_counter() - t0
-
-    def settled(z, dz):
-        return np.all(np.abs(dz) <= _solvers.ATOL + _solvers.RTOL * np.abs(z))
-
     z = np.asarray(z, dtype=np.float64)
     for _ in range(_coarse.MAX_FINE_STEPS):
         t0 = time.perf_counter()
-        R, _, J, dz, _ = (np.asarray(a) for a in step(jax.numpy.asarray(z), prob.data))
+        R, r, J, dz, cost = (np.asarray(a) for a in step(jnp.asarray(z), data))
         t_run += time.perf_counter() - t0
-        done = settled(z, dz)
+        done = _coarse.settled(z, dz, rtol, atol)
         z = z + dz
         samples.append((len(samples), t_run, prob.params(z)))
         if done:
             break
         t0 = time.perf_counter()
-        r1 = np.asarray(forward(jax.numpy.asarray(z), prob.data))
-        dz1 = -np.linalg.solve(R.T @ R, J.T @ r1)
+        r1 = residuals_at_points(spec, z[None], data)[0]
+        dz1 = _coarse.chord_step(R, J, r, r1, z, dz, float(cost), rtol, atol)
         t_run += time.perf_counter() - t0
-        if settled(z, dz1):
+        if dz1 is not None:
             z = z + dz1
             samples.append((len(samples), t_run, prob.params(z)))
             break

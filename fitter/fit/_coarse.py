@@ -10,8 +10,8 @@ a forward render, a third of a linearisation's cost), taken with the residuals
 linearised there; the stated errors come from that J, a step before the
 optimum (they differ from the direct fit's by ~0.03 % at 256^2, a seventh of
 their own statistical precision). Where the target's noise would not hide
-that J's age (``CHORD_RTOL``: a noise-free target), the finish linearises
-again instead.
+that J's age (``chord_step``, ``CHORD_RTOL``: a noise-free target), the
+finish linearises again instead.
 If a step raises the cost or the steps do not settle in ``MAX_FINE_STEPS``,
 the caller solves at full size from the original start as if this module did
 not exist (measured on 256^2 plastic from the far start: 8 coarse steps and
@@ -39,17 +39,33 @@ MAX_FINE_STEPS = 4
 ENABLED = True
 #: A chord step settles the finish only where the residuals it linearises with
 #: a J one step old are off by at most this fraction of their norm at the
-#: optimum (``_chord_error``): the noise then hides it. On a noise-free target
+#: optimum (``chord_step``): the noise then hides it. On a noise-free target
 #: those residuals are rounding and the finish linearises again.
 CHORD_RTOL = 1e-4
 
 
-def _chord_error(r0, r1, J, dz, dz1) -> float:
-    """Estimated |r(z1 + dz1) - (r1 + J dz1)| for J made at z0 = z1 - dz: the
-    Jacobian's change over the step is ~2 |a| / |dz| per unit step, a = r1 -
-    r0 - J dz the step's second-order remainder (a = dz^T H dz / 2)."""
-    a = np.linalg.norm(r1 - r0 - J @ dz)
-    return 2.0 * float(a) * float(np.linalg.norm(dz1)) / max(float(np.linalg.norm(dz)), 1e-300)
+def settled(z, dz, rtol: float, atol: float) -> bool:
+    """Whether the step ``dz`` from ``z`` is within the solver's tolerances
+    (|dz| <= atol + rtol |z|, optimistix's own test)."""
+    return bool(np.all(np.abs(dz) <= atol + rtol * np.abs(z)))
+
+
+def chord_step(R, J, r0, r1, z1, dz, cost: float, rtol: float, atol: float):
+    """The chord step dz1 (n,) from z1 = z0 + dz, the Gauss-Newton step ``dz``
+    taken from z0 with J (N, n), its R factor and residuals ``r0``, cost
+    ``cost``; ``r1`` the residuals at z1 (Kelley, *Solving Nonlinear Equations
+    with Newton's Method*, SIAM 2003, sec. 2.3.3, the chord method). None
+    unless it settles the finish: the cost fell, dz1 is within tolerance and
+    the residuals linearised with this J at z1 + dz1 are off by at most
+    ``CHORD_RTOL`` of their norm. That error is estimated from the step's
+    second-order remainder a = r1 - r0 - J dz (= dz^T H dz / 2): J changes by
+    ~2 |a| / |dz| per unit step, so r1 + J dz1 is off by ~2 |a| |dz1| / |dz|."""
+    dz1 = -np.linalg.solve(R.T @ R, J.T @ r1)
+    if not (0.5 * float(r1 @ r1) <= cost and settled(z1, dz1, rtol, atol)):
+        return None
+    age = 2.0 * float(np.linalg.norm(r1 - r0 - J @ dz)) * float(np.linalg.norm(dz1))
+    age /= max(float(np.linalg.norm(dz)), 1e-300)
+    return dz1 if age <= CHORD_RTOL * float(np.linalg.norm(r1 + J @ dz1)) else None
 
 
 def eligible(scene, *, mask, exclude, weights, saturation, loss, dtype, n_starts) -> bool:
@@ -101,10 +117,6 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
     step, tc = compiled("gauss_newton", problem.spec, (problem.cast(z), data))
     t_compile += tc
     rtol, atol = problem.static["rtol"], problem.static["atol"]
-
-    def settled(z, dz):
-        return np.all(np.abs(dz) <= atol + rtol * np.abs(z))
-
     prev = np.inf
     for k in range(1, MAX_FINE_STEPS + 1):
         R, r, J, dz, cost = jax.tree_util.tree_map(np.asarray, step(problem.cast(z), data))
@@ -112,16 +124,13 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
         say(f"full size: Gauss-Newton step {k}, cost {cost:.4g}")
         if not (np.isfinite(cost) and np.all(np.isfinite(dz))) or cost > prev:
             return None
-        if settled(z, dz):
+        if settled(z, dz, rtol, atol):
             break
-        # The chord step after this one (this J, the residuals there: one
-        # forward render) within tolerance: settled without a second
-        # linearisation (Kelley, *Solving Nonlinear Equations with Newton's
-        # Method*, SIAM 2003, sec. 2.3.3, the chord method).
+        # Settled by the chord step after this one (one forward render), or
+        # linearised again there.
         r1 = residuals_at_points(problem.spec, (z + dz)[None], data)[0]
-        dz1 = -np.linalg.solve(R.T @ R, J.T @ r1)
-        if (0.5 * float(r1 @ r1) <= cost and settled(z + dz, dz1)
-                and _chord_error(r, r1, J, dz, dz1) <= CHORD_RTOL * np.linalg.norm(r1 + J @ dz1)):
+        dz1 = chord_step(R, J, r, r1, z + dz, dz, cost, rtol, atol)
+        if dz1 is not None:
             z, r, dz = z + dz, r1, dz1
             break
         prev, z = cost, z + dz
