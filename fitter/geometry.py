@@ -26,9 +26,22 @@ from .envlight import LUMINANCE, sky_sum
 from .scene import DirectionalLight, PointLight, Scene
 
 _LOOKUP = jax.jit(lookup, static_argnums=0, compiler_options=FAST_COMPILE)
-#: The sky irradiance's sum as one executable: op by op, its dozen ops were compiled
-#: one by one on every first run (~0.5 s).
-_SKY_SUM = jax.jit(sky_sum)
+
+
+@functools.partial(jax.jit, static_argnums=5)
+def _sky_irradiance(h, window, pos, c, rows, n: int):
+    """(n, 3) each active pixel's sky irradiance: ``sky_sum`` of the node weights
+    ``h`` per env sample, summed over the samples of each pixel ``rows`` (R,; -1:
+    padding). One executable (op by op, its dozen ops were compiled one by one
+    on every first run, ~0.5 s), left running: the set-up goes on (the fit's
+    tracing) while the sky table is computed."""
+    irr = jnp.where((rows >= 0)[:, None], sky_sum(h, window, pos, c), 0.0)
+    return jax.ops.segment_sum(irr, jnp.maximum(rows, 0), n)
+
+
+#: Rows of a device array (``Geometry.subset`` of the sky irradiance, which may
+#: still be being computed: no wait for it).
+_take_rows = jax.jit(lambda a, rows: jnp.take(a, rows, axis=0))
 
 
 @functools.partial(jax.jit, static_argnums=3)
@@ -117,7 +130,8 @@ class Geometry(NamedTuple):
         return bool(self.env_color.shape[0] and self.env_color.shape[1])
 
     def subset(self, rows: np.ndarray, own_samples: bool = False) -> "Geometry":
-        """The geometry of the active pixels ``rows`` only (NumPy arrays).
+        """The geometry of the active pixels ``rows`` only (NumPy arrays; the sky
+        irradiance stays on the device when it is there).
 
         The env samples' blocks are shared, not copied, unless ``own_samples``:
         then the samples of ``rows`` alone are blocked anew with their rows of
@@ -138,9 +152,12 @@ class Geometry(NamedTuple):
                     for i, cs, wt, col in self.sun)
         env = (_own_samples(self, env_rows, len(rows)) if own_samples and self.has_sky
                else {"env_index": env_rows})
+        # The sky irradiance on the device may still be being computed: not waited for.
+        irr = ((lambda a: _take_rows(a, rows)) if isinstance(self.env_irradiance, jax.Array)
+               else pick)
         return self._replace(
             sun=sun, **env, sample_weight=np.asarray(self.sample_weight),
-            light_color=np.asarray(self.light_color), **self._pixels(pick, per_light))
+            light_color=np.asarray(self.light_color), **self._pixels(pick, per_light, irr))
 
     def take(self, rows) -> "Geometry":
         """The active pixels ``rows`` only, by plain indexing: NumPy, or JAX
@@ -151,10 +168,11 @@ class Geometry(NamedTuple):
             raise ValueError("take: the geometry has env samples or sun cells; use subset")
         return self._replace(**self._pixels(lambda a: a[rows], lambda a: a[:, rows]))
 
-    def _pixels(self, pick, per_light) -> dict:
-        """The per-pixel fields, each picked: (P, ...) by ``pick``, (L, P, ...) by ``per_light``."""
+    def _pixels(self, pick, per_light, pick_irradiance=None) -> dict:
+        """The per-pixel fields, each picked: (P, ...) by ``pick`` (the sky
+        irradiance by ``pick_irradiance`` if given), (L, P, ...) by ``per_light``."""
         return dict(
-            env_irradiance=pick(self.env_irradiance), hit=pick(self.hit),
+            env_irradiance=(pick_irradiance or pick)(self.env_irradiance), hit=pick(self.hit),
             pixel_index=None if self.pixel_index is None else pick(self.pixel_index),
             position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
             cosines=Cosines(*(per_light(a) for a in self.cosines)),
@@ -402,9 +420,8 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
                                                rings=det.rings)
             rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
             e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub), det.rings)
-            irr = np.asarray(_SKY_SUM(to_device(e_nw.sum(-1)), node, frac, e_c))
-            e_irr = np.zeros((pixel_index.size, 3))
-            np.add.at(e_irr, rows[rows >= 0], irr[rows >= 0])
+            e_irr = _sky_irradiance(to_device(e_nw.sum(-1)), node, frac, e_c, rows,
+                                    pixel_index.size)
     if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))

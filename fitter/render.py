@@ -348,7 +348,7 @@ def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
                               np.asarray(env64.constant))
     geo = build_geometry(scene, scene.environment.type, env64, lighting)
     # float32 renders still get geometry computed in float64, then rounded.
-    cast = lambda a: to_device(a, dtype) if np.asarray(a).dtype.kind == "f" \
+    cast = lambda a: to_device(a, dtype) if jnp.result_type(a).kind == "f" \
         else to_device(a)  # noqa: E731
     sphere = (to_device(scene.sphere.center, dtype), to_device(scene.sphere.radius, dtype))
     return jax.tree_util.tree_map(cast, geo), jax.tree_util.tree_map(cast, env64), sphere

@@ -325,23 +325,28 @@ def _flat_levels(sky):
     return np.concatenate(quads), shp[:, 0], shp[:, 1], off
 
 
+def _bilinear(quads, h, w, off, u, v):
+    """Mitsuba's bilinear lookup (``envlight.bilinear``) of the level (h, w) at
+    ``off`` of ``_flat_levels``' ``quads``, at (u, v) (JAX)."""
+    import jax.numpy as jnp
+
+    hf, wf = h.astype(u.dtype), w.astype(u.dtype)
+    fx, fy = u * wf - 0.5, v * (hf - 1)
+    x0 = jnp.floor(fx)
+    y0 = jnp.clip(jnp.floor(fy), 0.0, hf - 2)
+    wx, wy = (fx - x0)[..., None], jnp.clip(fy - y0, 0.0, 1.0)[..., None]
+    x0i = jnp.mod(x0.astype(jnp.int32), w)
+    g = jnp.take(quads, y0.astype(jnp.int32) * w + off + x0i, axis=0)  # (..., 4, 3)
+    top = g[..., 0, :] * (1 - wx) + g[..., 1, :] * wx
+    bot = g[..., 2, :] * (1 - wx) + g[..., 3, :] * wx
+    return top * (1 - wy) + bot * wy
+
+
 @functools.cache
 def _table_fn():
     """The per-chunk tabulation of ``sky_table`` (JAX, the inputs' dtype; jitted by
     ``_table_all_fn``)."""
     import jax.numpy as jnp
-
-    def bil(quads, h, w, off, u, v):  # Mitsuba's bilinear lookup, per cell's level
-        hf, wf = h.astype(u.dtype), w.astype(u.dtype)
-        fx, fy = u * wf - 0.5, v * (hf - 1)
-        x0 = jnp.floor(fx)
-        y0 = jnp.clip(jnp.floor(fy), 0.0, hf - 2)
-        wx, wy = (fx - x0)[..., None], jnp.clip(fy - y0, 0.0, 1.0)[..., None]
-        x0i = jnp.mod(x0.astype(jnp.int32), w)
-        g = jnp.take(quads, y0.astype(jnp.int32) * w + off + x0i, axis=0)  # (..., 4, 3)
-        top = g[..., 0, :] * (1 - wx) + g[..., 1, :] * wx
-        bot = g[..., 2, :] * (1 - wx) + g[..., 3, :] * wx
-        return top * (1 - wy) + bot * wy
 
     def fn(nrm, wo, wt, q_tab, cen_tab, quads, lh, lw, loff, lo, fl):
         co = jnp.clip(jnp.sum(nrm * wo, -1), 0.0, 1.0)
@@ -365,8 +370,8 @@ def _table_fn():
         u = jnp.arctan2(d[..., 0], -d[..., 2]) / (2.0 * jnp.pi)
         u = u - jnp.floor(u)
         v = jnp.arctan2(jnp.hypot(d[..., 0], d[..., 2]), d[..., 1]) / jnp.pi
-        rad = (bil(quads, lh[lo], lw[lo], loff[lo], u, v) * (1 - fl)[:, None]
-               + bil(quads, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
+        rad = (_bilinear(quads, lh[lo], lw[lo], loff[lo], u, v) * (1 - fl)[:, None]
+               + _bilinear(quads, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
         lit = (q > 0) & (jnp.sum(d * nrm[:, None], -1) > 0)
         c = jnp.where(lit[..., None], rad * (q * wt[:, None] / co[:, None])[..., None], 0.0)
         return jnp.swapaxes(c, 1, 2).astype(jnp.float64)  # (C, 3, N), float64 sums

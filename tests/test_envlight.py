@@ -33,6 +33,21 @@ def test_lambert_under_a_constant_sky_is_rho_times_radiance():
                                                        inside.shape), rtol=1e-3)
 
 
+def test_sky_irradiance_of_every_pixel_is_pi_radiance_times_its_coverage():
+    """A convex sphere's point sees the whole hemisphere: under a constant sky
+    of radiance L, E = pi L (closed form) per env sample, so a pixel's summed
+    irradiance (``Geometry.env_irradiance``, the per-sample sums scattered to
+    their pixels on the device) is pi L times the share of the pixel on the
+    sphere, limb and silhouette pixels included."""
+    rad = np.array([1.0, 0.5, 0.25])
+    scene = SMALL.replace(environment=Environment(type="constant", radiance=tuple(rad)))
+    r = cached_renderer(scene, Material.from_params({"lambert.rho_d": 0.5}),
+                        jnp.dtype(jnp.float64), None)
+    coverage = np.asarray(r.geometry.hit, float) @ np.asarray(r.geometry.sample_weight)
+    np.testing.assert_allclose(np.asarray(r.geometry.env_irradiance),
+                               np.pi * coverage[:, None] * rad, rtol=1e-3, atol=1e-12)
+
+
 @pytest.mark.parametrize("rings", [1, 2])
 def test_stencil_integrates_the_cosine_exactly_for_any_view(rings):
     """int max(cos_i, 0) dw = pi (closed form), with the default rings and with
@@ -313,3 +328,25 @@ def test_the_sky_detail_is_made_per_call(monkeypatch):
     monkeypatch.setattr(envlight.Detail.__new__, "__defaults__", (49, (1, 2), 2))
     lights = envlight.env_lights("constant", np.zeros((2, 4, 3)), np.array([1.0, 1.0, 1.0]))
     assert lights.detail == envlight.Detail(49, (1, 2), 2)
+
+
+def test_the_set_up_leaves_the_sky_table_on_the_device(sun_probe):
+    """The sky table and irradiance stay device arrays through the set-up
+    (``build_geometry``, ``to_device``, ``Geometry.subset``), so the fit's
+    tracing runs while they are computed; a host copy would wait for them."""
+    from fitter._math import to_device
+    from fitter.geometry import build_geometry
+
+    scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe))
+    r = cached_renderer(scene, Material.from_params({"lambert.rho_d": 0.5}),
+                        jnp.dtype(jnp.float64), None)
+    env = jax.tree_util.tree_map(np.asarray, r.env)
+    geo = build_geometry(scene, "envmap", env, envlight.env_lights("envmap", env.image,
+                                                                   env.constant))
+    assert isinstance(geo.env_color, jax.Array) and isinstance(geo.env_irradiance, jax.Array)
+    assert to_device(geo.env_irradiance) is geo.env_irradiance
+    assert to_device(geo.env_irradiance, np.float32).dtype == np.float32
+    rows = np.arange(0, geo.hit.shape[0], 3)
+    part = geo.subset(rows)
+    assert isinstance(part.env_irradiance, jax.Array)
+    np.testing.assert_array_equal(part.env_irradiance, np.asarray(geo.env_irradiance)[rows])

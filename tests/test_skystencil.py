@@ -77,3 +77,23 @@ def test_node_cos_o_is_one_value_per_node():
     t = skystencil.node_angles(9)
     assert cos.cos_o.shape == (9, 1, 1) and cos.cos_i.shape == w.shape
     np.testing.assert_allclose(cos.cos_o[:, 0, 0], np.cos(t), rtol=0, atol=1e-15)
+
+
+def test_the_tables_bilinear_lookup_is_mitsubas_on_every_level():
+    """``_flat_levels``' 2 x 2 neighbourhoods give, through ``_bilinear``, the
+    same value as a lookup of each level's own image (``envlight.bilinear``,
+    Mitsuba's convention: x wraps, y clamps), on a random pyramid and at
+    random points plus the seam (u = 0, 1 - 1e-12) and the poles (v = 0, 1)."""
+    from types import SimpleNamespace
+
+    from fitter.envlight import bilinear
+
+    rng = np.random.default_rng(3)
+    levels = [rng.random((h, 2 * h - 2, 3)) for h in (9, 5, 3)]
+    quads, lh, lw, loff = skystencil._flat_levels(SimpleNamespace(levels=levels))
+    u = np.concatenate([rng.random(500), [0.0, 1.0 - 1e-12, 0.5, 0.0]])
+    v = np.concatenate([rng.random(500), [0.0, 1.0, 1.0, 0.5]])
+    for i, img in enumerate(levels):
+        got = skystencil._bilinear(jnp.asarray(quads), jnp.int32(lh[i]), jnp.int32(lw[i]),
+                                   jnp.int32(loff[i]), jnp.asarray(u), jnp.asarray(v))
+        np.testing.assert_allclose(np.asarray(got), bilinear(img, u, v), rtol=1e-12, atol=0)
