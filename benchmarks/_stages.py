@@ -26,6 +26,7 @@ WRAPPED = (
     ("_drivers", "weak_profile", "cost profile (_identify)"),
     ("_drivers", "_finish", "other checks after the fit (covariance, sandwich, adequacy)"),
     ("_discretisation", "sample_rows", "discretisation term (_discretisation)"),
+    ("_discretisation", "sky_terms", "discretisation term (_discretisation)"),
     ("_discretisation", "coarse_without_sky", "discretisation term (_discretisation)"),
     ("_discretisation", "finer_values", "discretisation term (_discretisation)"),
     ("_discretisation", "sky_stencil_error", "discretisation term (_discretisation)"),

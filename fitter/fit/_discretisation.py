@@ -124,7 +124,12 @@ def _render_key(material, env_type, shapes) -> str:
 
 
 def _compile_render(args, material, env_type, key):
+    """``render_active`` of ``material`` (P, 3), or of each of a tuple of
+    materials (k, P, 3): one executable, one compile."""
     def active(p, g, e, s):
+        if isinstance(material, tuple):
+            return jax.numpy.stack([render_active(p, g, e, s, material=m, env_type=env_type)
+                                    for m in material])
         return render_active(p, g, e, s, material=material, env_type=env_type)
 
     return compile_cached(active, args, key, FAST_COMPILE)
@@ -138,7 +143,8 @@ def _keep_executable(key, exe) -> None:
 
 
 def _render(params, geo, env, sphere, material, env_type) -> np.ndarray:
-    """``render_active`` (P, 3) as float64 NumPy, through one executable per
+    """``render_active`` (P, 3) as float64 NumPy (of a tuple of materials, (k, P,
+    3), as ``_compile_render``), through one executable per
     structure and shapes whose trace the fit's persistent cache keeps
     (``_cache.compile_cached``): a repeated ``fitter fit`` loads it instead of
     tracing the renderer (0.1 s); ``prefetch`` may have compiled it ahead. Host
@@ -340,7 +346,7 @@ def _values(scene, material, env64, lighting, flat, params, env_type, key):
 
 def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, np.ndarray]:
     """Values of the fitted pixels by the finer model, sky term excluded: compare
-    with ``coarse_without_sky``.
+    with the model minus its sky term (``sky_terms``).
 
     Each refinement alone, the differences summed (first order; together, the
     quarter-texel sun at 2k samples tabulated 128 cells x 100 k samples at
@@ -351,7 +357,7 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
     the finer samples see on the sphere (the sky term scales with it; 0: none,
     the pixel is left out). ``params``: complete parameters in user units;
     ``rows``: which fitted pixels (default all); ``coarse``: their fitted values
-    without the sky term (``coarse_without_sky``; default: rendered here).
+    without the sky term (default: rendered here).
     """
     r = problem.renderer
     scene, material, env_type = r.scene, r.material, r.env_type
@@ -377,20 +383,19 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
     return vals, coverage
 
 
-def _params(data, params):
+def sky_terms(data, params, material, env_type) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted model's sky term (P, 3) of every opaque lobe and of those but Lambert
+    (one render); zeros when the environment lights none. The model minus the first
+    is the model without its sky term."""
+    brdf = material.opaque
+    if not (brdf and data.geometry.has_sky):
+        return (np.zeros(np.shape(data.geometry.background)),) * 2
+    glossy = [n for n in brdf if n != "lambert"]
+    kinds = (brdf, glossy) if glossy and len(glossy) < len(brdf) else (brdf,)
     # to_device: jnp.asarray compiled a conversion kernel per shape on a first run
-    return {k: to_device(np.asarray(v), data.target.dtype) for k, v in params.items()}
-
-
-def coarse_without_sky(data, params, material, env_type, model) -> np.ndarray:
-    """The fitted model's values (P, 3) without its sky term: ``model`` itself
-    when the environment lights no opaque lobe."""
-    geo = data.geometry
-    if not geo.has_sky:
-        return np.asarray(model, dtype=np.float64)
-    empty = to_device(np.zeros((0, 0, 0)), geo.env_color.dtype)  # (no kernel compiled)
-    return _render(_params(data, params), geo._replace(env_color=empty), data.env,
-                   data.sphere, material, env_type)
+    params = {k: to_device(np.asarray(v), data.target.dtype) for k, v in params.items()}
+    terms = _sky_terms(params, data.geometry, data.env, data.sphere, material, kinds, env_type)
+    return terms[0], (terms[-1] if glossy else np.zeros_like(terms[0]))
 
 
 def _lobes(material, names) -> Material:
@@ -407,33 +412,26 @@ def _dark(geo):
         background=to_device(np.zeros(np.shape(geo.background)), geo.background.dtype))
 
 
-def _sky_term(params, geo, env, sphere, material, names, env_type) -> np.ndarray:
-    """The sky term (P, 3) of ``material``'s lobes ``names`` on ``geo`` (``_dark``),
-    times the exposure if any. ``params``: complete parameters, as ``_render``
-    takes them."""
-    sky = _render(params, _dark(geo), env, sphere, _lobes(material, names), env_type)
+def _sky_terms(params, geo, env, sphere, material, kinds, env_type) -> np.ndarray:
+    """The sky terms (k, P, 3) of ``material``'s lobes of each of ``kinds`` (lists of
+    names) on ``geo`` (``_dark``), times the exposure if any; ``params`` as ``_render``'s."""
+    sky = _render(params, _dark(geo), env, sphere,
+                  tuple(_lobes(material, names) for names in kinds), env_type)
     return sky * float(params[EXPOSURE_KEY]) if material.exposure else sky
 
 
-def sky_stencil_error(data, params, material, env_type, sky) -> np.ndarray:
-    """Stated bounds of the sky stencil's error (k, P, 3), one per kind of lobe
-    the environment lights, taken as independent: ``SKY_STENCIL_ACCURACY`` times
-    the fitted sky term of the opaque lobes other than Lambert, and
-    ``IRRADIANCE_ACCURACY`` times Lambert's; (0, P, 3) when it lights none.
-    ``sky`` (P, 3): the fitted sky term of every opaque lobe (the model minus
-    ``coarse_without_sky``); Lambert's is what the others' leave of it."""
-    geo = data.geometry
+def sky_stencil_error(data, material, sky, glossy) -> np.ndarray:
+    """Stated bounds of the sky stencil's error (k, P, 3), one per kind of lobe the
+    environment lights, independent: ``SKY_STENCIL_ACCURACY`` x the sky term ``glossy``
+    of the opaque lobes but Lambert, ``IRRADIANCE_ACCURACY`` x Lambert's, what they leave
+    of ``sky`` (every opaque lobe's; both ``sky_terms``); (0, P, 3) when it lights none."""
     brdf = material.opaque
-    glossy = [n for n in brdf if n != "lambert"]
-    if not (brdf and geo.has_sky):
-        return np.zeros((0,) + np.shape(geo.background))
-    out = []
-    if glossy:
-        out.append(_sky_term(_params(data, params), geo, data.env, data.sphere, material,
-                             glossy, env_type))
-    lambert = [np.asarray(sky, dtype=np.float64) - sum(out)] if "lambert" in brdf else []
-    return np.stack([SKY_STENCIL_ACCURACY * g for g in out]
-                    + [IRRADIANCE_ACCURACY * g for g in lambert])
+    if not (brdf and data.geometry.has_sky):
+        return np.zeros((0,) + np.shape(sky))
+    out = [SKY_STENCIL_ACCURACY * glossy] if any(n != "lambert" for n in brdf) else []
+    if "lambert" in brdf:
+        out.append(IRRADIANCE_ACCURACY * (np.asarray(sky, dtype=np.float64) - glossy))
+    return np.stack(out)
 
 
 #: The sky stencil's rings (``skystencil.RING_EDGES``) against half of them
@@ -464,7 +462,7 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
     (M, 3): (``sky`` - the same at half the rings) / ``RING_RICHARDSON`` at every
     ``RING_STRIDE``-th row, times ``RING_STRIDE`` (a sum over them estimates the
     sum over ``rows``), 0 at the others; ``sky`` (M, 3) is the fitted sky term
-    there (the model minus ``coarse_without_sky``). Zeros where the environment
+    there (``sky_terms``). Zeros where the environment
     lights no opaque lobe."""
     r = problem.renderer
     scene, material, env_type = r.scene, r.material, r.env_type
@@ -479,8 +477,8 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
     geo, found, _ = _geometry(dark, env64, lighting, flat, env_type, _geometry_key(
         dark, problem.base_dir, env_type, _half_rings(), flat))
     half = np.zeros((pick.size, 3))
-    half[found] = _sky_term(_host_params(params), geo, env64, _sphere(scene), material,
-                            material.opaque, env_type)
+    half[found] = _sky_terms(_host_params(params), geo, env64, _sphere(scene), material,
+                             (material.opaque,), env_type)[0]
     out = np.zeros(np.shape(sky))
     out[pick] = (np.asarray(sky, dtype=np.float64)[pick] - half) * (RING_STRIDE / RING_RICHARDSON)
     out[pick[~found]] = 0.0

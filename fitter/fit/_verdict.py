@@ -230,8 +230,8 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
                                               problem.renderer.scene)
     finer = np.zeros_like(model)
     coverage = np.zeros(model.shape[0])
-    coarse = _discretisation.coarse_without_sky(data, params, spec.material, spec.env_type,
-                                                model)
+    sky_term, glossy = _discretisation.sky_terms(data, params, spec.material, spec.env_type)
+    coarse = model - sky_term  # the model without its sky term
     finer[rows], coverage[rows] = _discretisation.finer_values(problem, params, rows,
                                                                coarse[rows])
     # The sky term (not refined) over the part of the pixel the finer samples
@@ -242,11 +242,9 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     scale = np.zeros(model.shape[0])
     scale[rows] = share  # body pixels stand for their unrendered neighbours
     w = np.asarray(data.weights, dtype=np.float64) * covered[:, None]
-    diff = finer + (model - coarse) * (coverage / np.maximum(seen, 1e-300))[:, None] - model
+    diff = finer + sky_term * (coverage / np.maximum(seen, 1e-300))[:, None] - model
     diff = np.where(covered[:, None], diff, 0.0)
-    sky_term = model - coarse  # every opaque lobe's sky term (0 without a sky table)
-    sky = _discretisation.sky_stencil_error(data, params, spec.material, spec.env_type,
-                                            sky_term)
+    sky = _discretisation.sky_stencil_error(data, spec.material, sky_term, glossy)
     rings = np.zeros_like(model)
     if data.geometry.has_sky:
         rings[rows] = _discretisation.ring_error(problem, params, rows, sky_term[rows])
