@@ -165,7 +165,27 @@ def _brdf_unit(lobe, p, opts, geo: Geometry, lights=None):
 
 def _constant_shape(lobe, opts):
     """The shape of a parameter-free lobe if it is the same at 16 random direction
-    pairs (Lambert's 1/pi), else None. Evaluated at trace time on concrete arrays."""
+    pairs (Lambert's 1/pi), else None. Evaluated at trace time on concrete arrays,
+    once per lobe and options (``_known_shapes``)."""
+    try:
+        return _constant_shape_of(lobe, tuple(sorted(opts.items())))
+    except TypeError:  # an unhashable option value
+        return _constant_shape_of.__wrapped__(lobe, tuple(sorted(opts.items())))
+
+
+def _known_shapes(material: Material) -> None:
+    """``_constant_shape`` of the material's parameter-free opaque lobes, now: at
+    trace time its small eager evaluation would queue behind the sky table's
+    computation on the device (0.4 s of a first env fit's tracing)."""
+    for lobe in material.lobe_objects:
+        opts = material.options_of(lobe.name)
+        if lobe.kind == "brdf" and all(q.name == lobe.scale for q in lobe.params_for(opts)):
+            _constant_shape(lobe, opts)
+
+
+@functools.lru_cache(maxsize=64)
+def _constant_shape_of(lobe, opts: tuple):
+    opts = dict(opts)
     rng = np.random.default_rng(0)
     n = np.array([0.0, 0.0, 1.0])
     wi, wo = (v / np.linalg.norm(v, axis=-1, keepdims=True)
@@ -293,6 +313,10 @@ class Renderer:
         self.scene, self.material, self.dtype = scene, material, dtype
         self.env_type = scene.environment.type
         key_scene, key_dir = _prepare_key(scene, os.path.abspath(base_dir) if base_dir else None)
+        from .envlight import lit_by_environment
+
+        if lit_by_environment(scene, material):
+            _known_shapes(material)
         self.geometry, self.env, self.sphere = _prepare(
             key_scene, jnp.dtype(dtype), key_dir,
             env_light=bool(material.opaque))

@@ -350,3 +350,23 @@ def test_the_set_up_leaves_the_sky_table_on_the_device(sun_probe):
     part = geo.subset(rows)
     assert isinstance(part.env_irradiance, jax.Array)
     np.testing.assert_array_equal(part.env_irradiance, np.asarray(geo.env_irradiance)[rows])
+
+
+def test_a_parameter_free_lobes_constant_shape_is_known_before_tracing(sun_probe):
+    """Making an env-lit renderer evaluates Lambert's constant shape (1/pi, closed
+    form) once, before the sky table is dispatched: at trace time it is read,
+    not evaluated on a device still computing the table."""
+    import importlib
+
+    render_mod = importlib.import_module("fitter.render")
+    render_mod._constant_shape_of.cache_clear()
+    scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe),
+                          width=30)  # a scene of its own: its renderer is made here
+    cached_renderer(scene, Material.from_params({"lambert.rho_d": 0.5,
+                                                 "torrance_sparrow.m": 0.2}),
+                    jnp.dtype(jnp.float64), None)
+    info = render_mod._constant_shape_of.cache_info()
+    assert info.currsize == 1 and info.misses == 1
+    lambert = Material.from_params({"lambert.rho_d": 0.5}).lobe_objects[0]
+    assert render_mod._constant_shape(lambert, {}) == pytest.approx(1 / np.pi, rel=1e-15)
+    assert render_mod._constant_shape_of.cache_info().hits == 1
