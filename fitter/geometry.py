@@ -150,7 +150,7 @@ class Geometry(NamedTuple):
 
     def subset(self, rows: np.ndarray, own_samples: bool = False) -> "Geometry":
         """The geometry of the active pixels ``rows`` only (NumPy arrays; the sky
-        irradiance stays on the device when it is there).
+        irradiance of a sky table stays on the device when it is there).
 
         The env samples' blocks are shared, not copied, unless ``own_samples``:
         then the samples of ``rows`` alone are blocked anew with their rows of
@@ -172,8 +172,8 @@ class Geometry(NamedTuple):
         env = (_own_samples(self, env_rows, len(rows)) if own_samples and self.has_sky
                else {"env_index": env_rows})
         # The sky irradiance on the device may still be being computed: not waited for.
-        irr = ((lambda a: _take_rows(a, rows)) if isinstance(self.env_irradiance, jax.Array)
-               else pick)
+        irr = ((lambda a: _take_rows(a, rows))
+               if self.has_sky and isinstance(self.env_irradiance, jax.Array) else pick)
         return self._replace(
             sun=sun, **env, sample_weight=np.asarray(self.sample_weight),
             light_color=np.asarray(self.light_color), **self._pixels(pick, per_light, irr))
