@@ -73,3 +73,30 @@ def test_the_finer_models_pixels_stand_for_their_strata_within_its_sample_budget
             assert np.sum(labels[rows] == 0) == np.ceil(np.sum(labels == 0) / stride)
         else:
             assert rows.size * per_pixel <= 1.01 * budget
+
+
+def test_under_a_sky_the_renders_made_ahead_are_the_ones_used(tmp_path, monkeypatch):
+    """Under a sky the thread also compiles the renders of its three geometries
+    (finer samples, finer sun, half the rings); the fit uses those executables:
+    the main thread compiles only the fitted geometry's sky-term render."""
+    from fitter.imageio import write_image
+
+    img = np.full((16, 32, 3), 0.3)
+    img[5, 9] = [3000.0, 2900.0, 2500.0]  # a sun: all three geometries are made
+    write_image(str(tmp_path / "sun.exr"), img)
+    scene = SCENE.replace(lights=(), environment=fitter.Environment(
+        type="envmap", file=str(tmp_path / "sun.exr")))
+    target = np.asarray(fitter.render(GLOSSY, scene.replace(supersampling=4)))
+    compiled_on = []
+    compile_render = _discretisation._compile_render
+
+    def recorded(args, material, env_type, key):
+        compiled_on.append(threading.current_thread().name)
+        return compile_render(args, material, env_type, key)
+
+    monkeypatch.setattr(_discretisation, "_compile_render", recorded)
+    monkeypatch.setattr(_discretisation, "_GEOMETRIES", {})
+    monkeypatch.setattr(_discretisation, "_EXECUTABLES", {})
+    res = fitter.fit(target, scene, "lambert+torrance_sparrow")
+    assert res.status == "converged"
+    assert sorted(compiled_on) == [threading.main_thread().name] + ["fitter-finer-geometry"] * 3

@@ -415,8 +415,10 @@ def _dark(geo):
 def _sky_terms(params, geo, env, sphere, material, kinds, env_type) -> np.ndarray:
     """The sky terms (k, P, 3) of ``material``'s lobes of each of ``kinds`` (lists of
     names) on ``geo`` (``_dark``), times the exposure if any; ``params`` as ``_render``'s."""
-    sky = _render(params, _dark(geo), env, sphere,
-                  tuple(_lobes(material, names) for names in kinds), env_type)
+    lobes = tuple(_lobes(material, names) for names in kinds)
+    # One kind: one material, the executable ``prefetch`` compiles for ``ring_error``.
+    sky = (_render(params, _dark(geo), env, sphere, lobes[0], env_type)[None] if len(lobes) == 1
+           else _render(params, _dark(geo), env, sphere, lobes, env_type))
     return sky * float(params[EXPOSURE_KEY]) if material.exposure else sky
 
 
