@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import fitter
-from fitter.fit import _compile, _discretisation, _drivers
+from fitter.fit import _compile, _discretisation, _drivers, _renders
 
 LIGHTS = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),)
 SCENE = fitter.Scene(width=40, height=40, supersampling=2, lights=LIGHTS)
@@ -31,7 +31,7 @@ def target():
 def _fresh(monkeypatch):
     """No executable or finer geometry kept from another fit."""
     for mod, name in ((_compile, "_COMPILED"), (_compile, "_PENDING"),
-                      (_discretisation, "_EXECUTABLES"), (_discretisation, "_GEOMETRIES"),
+                      (_renders, "EXECUTABLES"), (_discretisation, "_GEOMETRIES"),
                       (_discretisation, "_AHEAD")):
         monkeypatch.setattr(mod, name, {})
 
@@ -41,7 +41,7 @@ def _fit(target, monkeypatch):
     _fresh(monkeypatch)
     where = []
     build, lowered, render = (_compile._build, _compile._compile_lowered,
-                              _discretisation._compile_render)
+                              _renders.compile_render)
 
     def build_rec(kind, *args):
         where.append((kind, threading.current_thread().name))
@@ -57,7 +57,7 @@ def _fit(target, monkeypatch):
 
     monkeypatch.setattr(_compile, "_build", build_rec)
     monkeypatch.setattr(_compile, "_compile_lowered", lowered_rec)
-    monkeypatch.setattr(_discretisation, "_compile_render", render_rec)
+    monkeypatch.setattr(_renders, "compile_render", render_rec)
     res = fitter.fit(target, SCENE, "lambert+torrance_sparrow")
     assert not [t.name for t in threading.enumerate() if t.name in THREADS]  # joined
     return res, [w for w in where if w[0] in ("solve", "finer render")]
@@ -101,7 +101,7 @@ def test_compiled_ahead_gives_the_same_fit(target, in_line, monkeypatch):
 
 
 def test_a_failure_on_the_thread_compiles_in_line(target, in_line, monkeypatch):
-    lowered, render = _compile._compile_lowered, _discretisation._compile_render
+    lowered, render = _compile._compile_lowered, _renders.compile_render
 
     def fails_on_threads(f):
         def g(*args):
@@ -111,7 +111,7 @@ def test_a_failure_on_the_thread_compiles_in_line(target, in_line, monkeypatch):
         return g
 
     monkeypatch.setattr(_compile, "_compile_lowered", fails_on_threads(lowered))
-    monkeypatch.setattr(_discretisation, "_compile_render", fails_on_threads(render))
+    monkeypatch.setattr(_renders, "compile_render", fails_on_threads(render))
     res, where = _fit(target, monkeypatch)
     # Tried on the threads (and failed there), then compiled where used.
     assert sorted(where) == [("finer render", "MainThread"),

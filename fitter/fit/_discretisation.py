@@ -38,13 +38,10 @@ import numpy as np
 
 from .. import envlight
 from .._math import to_device
-from ..compilation_cache import FAST_COMPILE
 from ..environment import load_environment
 from ..geometry import build_geometry
 from ..material import EXPOSURE_KEY, Material
-from ..render import render_active
-from . import _adequacy
-from ._cache import compile_cached
+from . import _adequacy, _renders
 from ._problem import user_values
 
 #: The finer model's sub-pixel samples per axis: 2k, at most this.
@@ -102,70 +99,12 @@ def finer_material(material):
     return Material.make(material.lobes, opts, exposure=material.exposure)
 
 
-def _to_device(a):
-    if isinstance(a, jax.Array):
-        return a
-    return to_device(a, np.float64) if np.asarray(a).dtype.kind == "f" else to_device(a)
-
-
-#: Executables of ``_render`` in this process, by structure and shapes (the last few).
-_EXECUTABLES: dict = {}
-_KEEP_EXECUTABLES = 8
-
-
-def _render_args(params, geo, env, sphere):
-    """``_render``'s arguments on the device and its executable's key's shapes."""
-    args = jax.tree_util.tree_map(_to_device, (params, geo, env, sphere))
-    return args, jax.tree_util.tree_map(lambda a: (a.shape, str(a.dtype)), args)
-
-
-def _render_key(material, env_type, shapes) -> str:
-    return repr(("discretisation_render", material, env_type, str(shapes)))
-
-
-def _compile_render(args, material, env_type, key):
-    """``render_active`` of ``material`` (P, 3), or of each of a tuple of
-    materials (k, P, 3): one executable, one compile."""
-    def active(p, g, e, s):
-        if isinstance(material, tuple):
-            return jax.numpy.stack([render_active(p, g, e, s, material=m, env_type=env_type)
-                                    for m in material])
-        return render_active(p, g, e, s, material=material, env_type=env_type)
-
-    return compile_cached(active, args, key, FAST_COMPILE)
-
-
-def _keep_executable(key, exe) -> None:
-    _EXECUTABLES.pop(key, None)
-    _EXECUTABLES[key] = exe
-    while len(_EXECUTABLES) > _KEEP_EXECUTABLES:
-        _EXECUTABLES.pop(next(iter(_EXECUTABLES)))
-
-
-def _render(params, geo, env, sphere, material, env_type) -> np.ndarray:
-    """``render_active`` (P, 3) as float64 NumPy (of a tuple of materials, (k, P,
-    3), as ``_compile_render``), through one executable per
-    structure and shapes whose trace the fit's persistent cache keeps
-    (``_cache.compile_cached``): a repeated ``fitter fit`` loads it instead of
-    tracing the renderer (0.1 s); ``prefetch`` may have compiled it ahead. Host
-    arrays go to the device as float64 (``to_device``: no copy kernel per
-    shape); device arrays as they are."""
-    args, shapes = _render_args(params, geo, env, sphere)
-    key = _render_key(material, env_type, shapes)
-    exe = _EXECUTABLES.get(key)
-    if exe is None:
-        exe = _compile_render(args, material, env_type, key)
-    _keep_executable(key, exe)
-    return np.asarray(exe(*args), dtype=np.float64)
-
-
 @functools.lru_cache(maxsize=8)
 def _lighting(environment, base_dir, kind):
-    """The ``lighting`` of ``geometry.build_geometry`` for a finer geometry, or
-    None without one: ``kind`` = (cell, sub), the environment's sun cells at
-    that size and no sky term; ``kind`` an ``envlight.Detail``, its sky alone on
-    that stencil (``_half_rings``) and no sun. Made once per environment: a
-    compiled env_plastic fit made its three again every time (0.06 s)."""
+    """``build_geometry``'s ``lighting`` for a finer geometry, or None without one:
+    ``kind`` = (cell, sub), the sun's cells at that size and no sky; ``kind`` a
+    ``envlight.Detail``, the sky alone on that stencil (``_half_rings``). Once per
+    environment (a compiled env_plastic fit made its three every time: 0.06 s)."""
     env64 = load_environment(environment, base_dir)
     image, constant = np.asarray(env64.image), np.asarray(env64.constant)
     if isinstance(kind, envlight.Detail):
@@ -198,8 +137,10 @@ def sample_rows(labels, scene) -> tuple[np.ndarray, np.ndarray]:
 #: solve's own memory.
 PREFETCH_SAMPLES = 2**19
 #: The finer geometries being made ahead (one fit's): {key: (thread, [prepared
-#: geometry or None, (executable key, executable) or None])}.
+#: geometry or None, (executable key, executable) or None])}; under ``SKY_TERMS``
+#: the executable of ``sky_terms``' render.
 _AHEAD: dict = {}
+SKY_TERMS = "sky terms"
 
 
 def _geometry_key(scene, base_dir, env_type, sun_cells, flat) -> tuple:
@@ -221,15 +162,12 @@ def _host_params(params) -> dict:
 def prefetch(problem) -> None:
     """Start making the finer model's geometries of the sampled fitted pixels
     (``finer_values``) and the half-ring one (``ring_error``) on a thread, while
-    the solver runs, and compiling the executables that render them (``_render``).
-
-    They depend on the scene, pixels and parameters' shapes, not on the fit.
-    NumPy (0.1 s at the quickstart's 128^2; env_plastic's two with sun cells
-    1.9 s) and XLA's compile release the interpreter to the solve and the
-    profile; the half-ring geometry comes last, beside the profile's compile.
-    What fails here is done again where needed (``_geometry``, ``_render``);
-    ``wait`` joins the thread.
-    """
+    the solver runs, and compiling the executables that render them and the
+    fitted geometry's sky terms (``sky_terms``). They depend on the scene, pixels
+    and parameters' shapes, not on the fit. NumPy (0.1 s at the quickstart's
+    128^2; env_plastic's two with sun cells 1.9 s) and XLA's compile release the
+    interpreter to the solve and the profile. What fails here is done again
+    where needed (``_geometry``, ``_renders.render``); ``wait`` joins the thread."""
     r = problem.renderer
     scene = r.scene
     rows, _ = sample_rows(_adequacy.pixel_regions(problem.geometry), scene)
@@ -256,9 +194,16 @@ def prefetch(problem) -> None:
     params = _host_params(user_values(problem.spec, problem.z_init(), {
         k: v for k, v in problem.init_full.items() if k not in free}))
     boxes: list = [[None, None] for _ in jobs]
+    sky_box: list = [None, None]
+    sky_ahead = lit and problem.geometry.has_sky
 
     def make():
         try:
+            if sky_ahead:  # ``sky_terms``' render (quick): first
+                mats = _sky_materials(r.material, _sky_kinds(r.material))
+                args, key = _renders.args_and_key(params, _dark(problem.geometry), r.env,
+                                                  _sphere(scene), mats, r.env_type)
+                sky_box[1] = key, _renders.compile_render(args, mats, r.env_type, key)
             for (s, cells, material, px, sky), box in zip(jobs, boxes):
                 lighting = _lighting(scene.environment, base, cells) if cells else None
                 if cells == FINER_SUN and (lighting is None or not lighting.sun_dir.shape[0]):
@@ -267,9 +212,9 @@ def prefetch(problem) -> None:
                     break
                 box[0] = _prepared(build_geometry(s, r.env_type, env64, lighting, pixels=px), px)
                 geo = _dark(box[0][0]) if sky else box[0][0]
-                args, shapes = _render_args(params, geo, env64, _sphere(scene))
-                exe_key = _render_key(material, r.env_type, shapes)
-                box[1] = exe_key, _compile_render(args, material, r.env_type, exe_key)
+                args, key = _renders.args_and_key(params, geo, env64, _sphere(scene), material,
+                                                  r.env_type)
+                box[1] = key, _renders.compile_render(args, material, r.env_type, key)
         except Exception:  # noqa: BLE001 (made again, and any error raised, where needed)
             pass
 
@@ -277,7 +222,21 @@ def prefetch(problem) -> None:
     wait()  # an earlier fit's, unused
     _AHEAD.clear()
     _AHEAD.update({key: (thread, box) for key, box in zip(keys, boxes)})
+    if sky_ahead:
+        _AHEAD[SKY_TERMS] = thread, sky_box
     thread.start()
+
+
+def _joined(key) -> list:
+    """What ``prefetch`` made under ``key`` ([geometry or None, (executable key,
+    executable) or None]), its thread joined and its executable kept."""
+    ahead = _AHEAD.pop(key, None)
+    if ahead is None:
+        return [None, None]
+    ahead[0].join()
+    if ahead[1][1] is not None and ahead[1][1][0] not in _renders.EXECUTABLES:
+        _renders.keep(*ahead[1][1])
+    return ahead[1]
 
 
 def wait() -> None:
@@ -298,8 +257,8 @@ def _prepared(geo, flat):
     sub = geo if np.array_equal(rows, np.arange(index.size)) else geo.subset(rows)
     coverage = np.zeros(flat.size)
     coverage[found] = np.asarray(sub.hit, dtype=np.float64) @ np.asarray(sub.sample_weight)
-    sub = jax.tree_util.tree_map(_to_device, sub._replace(pixel_index=None,
-                                                          background_image=None))
+    sub = jax.tree_util.tree_map(_renders.on_device, sub._replace(pixel_index=None,
+                                                                  background_image=None))
     return sub, found, coverage
 
 
@@ -319,14 +278,9 @@ def _geometry(scene, env64, lighting, flat, env_type, key):
     ``prefetch`` made (with its render executable), else made here; then kept."""
     if key in _GEOMETRIES:
         return _GEOMETRIES[key]
-    ahead = _AHEAD.pop(key, None)
-    if ahead is not None:
-        ahead[0].join()
-        if ahead[1][1] is not None and ahead[1][1][0] not in _EXECUTABLES:
-            _keep_executable(*ahead[1][1])
-    out = _GEOMETRIES[key] = (ahead[1][0] if ahead is not None and ahead[1][0] is not None
-                              else _prepared(build_geometry(scene, env_type, env64, lighting,
-                                                            pixels=flat), flat))
+    made = _joined(key)[0]
+    out = _GEOMETRIES[key] = (made if made is not None else _prepared(
+        build_geometry(scene, env_type, env64, lighting, pixels=flat), flat))
     size = lambda g: sum(a.nbytes for a in jax.tree_util.tree_leaves(g[0]))  # noqa: E731
     while _GEOMETRIES and (len(_GEOMETRIES) > _KEEP_GEOMETRIES or
                            sum(size(g) for g in _GEOMETRIES.values()) > _KEEP_BYTES):
@@ -340,7 +294,7 @@ def _values(scene, material, env64, lighting, flat, params, env_type, key):
     ``key``: that geometry's ``_geometry_key``."""
     sub, found, coverage = _geometry(scene, env64, lighting, flat, env_type, key)
     vals = np.zeros((flat.size, 3))
-    vals[found] = _render(_host_params(params), sub, env64, _sphere(scene), material, env_type)
+    vals[found] = _renders.render(_host_params(params), sub, env64, _sphere(scene), material, env_type)
     return vals, coverage
 
 
@@ -387,15 +341,28 @@ def sky_terms(data, params, material, env_type) -> tuple[np.ndarray, np.ndarray]
     """The fitted model's sky term (P, 3) of every opaque lobe and of those but Lambert
     (one render); zeros when the environment lights none. The model minus the first
     is the model without its sky term."""
-    brdf = material.opaque
-    if not (brdf and data.geometry.has_sky):
+    if not (material.opaque and data.geometry.has_sky):
         return (np.zeros(np.shape(data.geometry.background)),) * 2
-    glossy = [n for n in brdf if n != "lambert"]
-    kinds = (brdf, glossy) if glossy and len(glossy) < len(brdf) else (brdf,)
+    _joined(SKY_TERMS)  # its executable, if ``prefetch`` compiled it
     # to_device: jnp.asarray compiled a conversion kernel per shape on a first run
     params = {k: to_device(np.asarray(v), data.target.dtype) for k, v in params.items()}
+    kinds = _sky_kinds(material)
     terms = _sky_terms(params, data.geometry, data.env, data.sphere, material, kinds, env_type)
+    glossy = any(n != "lambert" for n in material.opaque)
     return terms[0], (terms[-1] if glossy else np.zeros_like(terms[0]))
+
+
+def _sky_kinds(material) -> tuple:
+    """``sky_terms``' lobes: every opaque one, and those but Lambert if that differs."""
+    brdf = material.opaque
+    glossy = [n for n in brdf if n != "lambert"]
+    return (brdf, glossy) if glossy and len(glossy) < len(brdf) else (brdf,)
+
+
+def _sky_materials(material, kinds):
+    """The material (one kind) or materials (a tuple) that ``_sky_terms`` renders."""
+    lobes = tuple(_lobes(material, names) for names in kinds)
+    return lobes[0] if len(lobes) == 1 else lobes
 
 
 def _lobes(material, names) -> Material:
@@ -414,11 +381,10 @@ def _dark(geo):
 
 def _sky_terms(params, geo, env, sphere, material, kinds, env_type) -> np.ndarray:
     """The sky terms (k, P, 3) of ``material``'s lobes of each of ``kinds`` (lists of
-    names) on ``geo`` (``_dark``), times the exposure if any; ``params`` as ``_render``'s."""
-    lobes = tuple(_lobes(material, names) for names in kinds)
-    # One kind: one material, the executable ``prefetch`` compiles for ``ring_error``.
-    sky = (_render(params, _dark(geo), env, sphere, lobes[0], env_type)[None] if len(lobes) == 1
-           else _render(params, _dark(geo), env, sphere, lobes, env_type))
+    names) on ``geo`` (``_dark``), times the exposure if any; ``params`` as ``_renders.render``'s."""
+    sky = _renders.render(params, _dark(geo), env, sphere, _sky_materials(material, kinds),
+                          env_type)
+    sky = sky[None] if len(kinds) == 1 else sky
     return sky * float(params[EXPOSURE_KEY]) if material.exposure else sky
 
 
