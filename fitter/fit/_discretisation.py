@@ -294,7 +294,8 @@ def _values(scene, material, env64, lighting, flat, params, env_type, key):
     ``key``: that geometry's ``_geometry_key``."""
     sub, found, coverage = _geometry(scene, env64, lighting, flat, env_type, key)
     vals = np.zeros((flat.size, 3))
-    vals[found] = _renders.render(_host_params(params), sub, env64, _sphere(scene), material, env_type)
+    vals[found] = _renders.render(_host_params(params), sub, env64, _sphere(scene), material,
+                                  env_type)
     return vals, coverage
 
 
@@ -381,7 +382,8 @@ def _dark(geo):
 
 def _sky_terms(params, geo, env, sphere, material, kinds, env_type) -> np.ndarray:
     """The sky terms (k, P, 3) of ``material``'s lobes of each of ``kinds`` (lists of
-    names) on ``geo`` (``_dark``), times the exposure if any; ``params`` as ``_renders.render``'s."""
+    names) on ``geo`` (``_dark``), times the exposure if any; ``params`` as
+    ``_renders.render`` takes them."""
     sky = _renders.render(params, _dark(geo), env, sphere, _sky_materials(material, kinds),
                           env_type)
     sky = sky[None] if len(kinds) == 1 else sky
