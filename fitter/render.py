@@ -167,10 +167,7 @@ def _constant_shape(lobe, opts):
     """The shape of a parameter-free lobe if it is the same at 16 random direction
     pairs (Lambert's 1/pi), else None. Evaluated at trace time on concrete arrays,
     once per lobe and options (``_known_shapes``)."""
-    try:
-        return _constant_shape_of(lobe, tuple(sorted(opts.items())))
-    except TypeError:  # an unhashable option value
-        return _constant_shape_of.__wrapped__(lobe, tuple(sorted(opts.items())))
+    return _constant_shape_of(lobe, tuple(sorted(opts.items())))
 
 
 def _known_shapes(material: Material) -> None:

@@ -23,10 +23,11 @@ KEEP = 8
 
 
 def on_device(a):
-    """``a`` on the device: a host float array as float64, a device array as it is."""
+    """``a`` on the device: a host float array as float64, other host arrays and
+    device arrays as they are."""
     if isinstance(a, jax.Array):
         return a
-    return to_device(a, np.float64) if np.asarray(a).dtype.kind == "f" else to_device(a)
+    return to_device(a, np.float64 if np.asarray(a).dtype.kind == "f" else None)
 
 
 def args_and_key(params, geo, env, sphere, material, env_type):
