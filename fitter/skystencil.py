@@ -176,6 +176,15 @@ def node_geometry(nodes: int = LOBE_NODES, sub: tuple = LOBE_SUB, rings: int = 1
     return Cosines(*cos), w
 
 
+def warm() -> None:
+    """Make the default stencil's constant tables now (``_cached_tables``,
+    ``node_geometry``), as ``geometry.build_geometry`` asks for them: a fit's
+    set-up starts this on a thread (``fit._ahead.import_ahead``)."""
+    det = Detail()
+    _cached_tables(det.rings)
+    node_geometry(det.nodes, tuple(det.sub), det.rings)
+
+
 def _node_geometry(nodes: int, sub: tuple, rings: int = 1):
     """``Cosines`` (T, N, M) of M points per stencil cell at the theta_o nodes (cos_o
     (T, 1, 1): one per node) and the weights (T, N, M) by which the renderer sums

@@ -116,3 +116,43 @@ def test_storing_removes_only_this_kinds_files_of_other_sources(cache_folder, mo
     assert set(kept) <= names
     assert len([n for n in names if n.startswith("fitter-probe-") and n.endswith(".npz")
                 and n not in kept]) == 2  # both of these sources' keys
+
+def test_a_sky_lit_fit_makes_the_stencil_tables_on_its_import_thread(no_cache_folder,
+                                                                      monkeypatch):
+    """``fit._ahead.import_ahead``: where the environment lights an opaque lobe, the
+    tables the set-up asks for (``geometry.build_geometry``'s calls) are made on the
+    thread; a mirror under the same sky, or a cache folder, starts no such work."""
+    from fitter import Environment, Material, Scene
+    from fitter.fit import _ahead
+
+    made = []
+    monkeypatch.setattr(skystencil, "warm", lambda: made.append(1))
+    scene = Scene(width=8, height=8, environment=Environment("constant", radiance=(1.0, 1.0, 1.0)))
+
+    def run(material):
+        made.clear()
+        _ahead.import_ahead(scene, material)
+        _ahead.settled(lambda: None)()  # joins the thread
+        return len(made)
+
+    assert run(Material.make(["lambert"])) == 1
+    assert run(Material.make(["mirror"])) == 0
+    assert run({"lobes": ["lambert"]}) == 0  # not parsed yet: no guess
+    jax.config.update("jax_compilation_cache_dir", "/nonexistent-cache")
+    try:
+        assert run(Material.make(["lambert"])) == 0
+    finally:
+        jax.config.update("jax_compilation_cache_dir", None)
+
+
+def test_warm_makes_the_tables_build_geometry_asks_for(monkeypatch):
+    """``skystencil.warm`` fills the caches under the arguments the set-up passes
+    (a cache keyed on other arguments would be made twice)."""
+    skystencil.node_geometry.cache_clear()
+    skystencil._cached_tables.cache_clear()
+    skystencil.warm()
+    det = skystencil.Detail()
+    monkeypatch.setattr(skystencil, "_node_geometry", lambda *a: pytest.fail("made again"))
+    monkeypatch.setattr(skystencil, "_tables", lambda *a: pytest.fail("made again"))
+    skystencil.node_geometry(det.nodes, tuple(det.sub), det.rings)
+    skystencil._cached_tables(det.rings)

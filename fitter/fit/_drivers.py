@@ -9,10 +9,7 @@ check identifiability at the solution, hold and refit -> verdict.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import functools
-import threading
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -22,11 +19,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..blasthreads import one_blas_thread
-from ..compilation_cache import active_dir
 from ..hugepages import advice_off
 from ..limits import check_fit
 from ..scene import Scene
-from . import _args, _coarse, _compile, _discretisation, _edge
+from . import _args, _coarse, _discretisation, _edge
+from ._ahead import import_ahead, settled
 from ._compile import (best_start, compile_ahead, compiled, jac_res, r_factor,
                        remember_jacobian)
 from ._covariance import residual_variance
@@ -56,57 +53,9 @@ CHECK_AFTER = ("levenberg_marquardt",)
 AUTO_STARTS = 4
 
 
-#: Threads importing the solver library (``_import_ahead``).
-_IMPORTS: list = []
-
-
-def _import_ahead() -> None:
-    """Import optimistix (0.3 s, which tracing the solve needs) on a thread,
-    beside the set-up's NumPy and the start search's XLA compile; not when the
-    traces may come from disk (``_cache``), which run without it."""
-    import sys
-
-    if "optimistix" in sys.modules or active_dir():
-        return
-
-    def load():
-        try:
-            import optimistix  # noqa: F401
-        except Exception:  # noqa: BLE001 (imported again, and any error raised, where needed)
-            pass
-
-    _IMPORTS.append(threading.Thread(target=load, name="fitter-import", daemon=True))
-    _IMPORTS[-1].start()
-
-
-def _settled(f):
-    """``f`` that leaves no thread of its own running (``_import_ahead``,
-    ``compile_ahead``, ``_discretisation.prefetch``) when it returns or raises
-    an error (an interrupt is not held up for them)."""
-    def settle():
-        for thread in list(_IMPORTS):  # (fits on other threads may settle them too)
-            thread.join()
-            with contextlib.suppress(ValueError):
-                _IMPORTS.remove(thread)
-        _compile.wait()
-        _discretisation.wait()
-
-    @functools.wraps(f)
-    def g(*args, **kwargs):
-        try:
-            out = f(*args, **kwargs)
-        except Exception:
-            settle()
-            raise
-        settle()
-        return out
-
-    return g
-
-
 @advice_off
 @one_blas_thread
-@_settled
+@settled
 def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None,
         fixed: Mapping[str, Any] | None = None, bounds: Mapping[str, tuple] | None = None,
         solver: str = "levenberg_marquardt", mask="interior", exclude=None, weights=None,
@@ -160,8 +109,8 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
             ``fitter.limits``: starts, supersampling, memory).
     """
     t_start = time.perf_counter()
-    _import_ahead()
     scene = _args.scene_of(scene)
+    import_ahead(scene, material)
     n_starts = _args.option("n_starts", n_starts)
     identifiability = _args.option("identifiability", identifiability)
     check_fit(scene.width, scene.height, scene.supersampling, n_starts)
