@@ -346,14 +346,18 @@ def costs_at(spec: Spec, zs, data) -> np.ndarray:
 _JACOBIANS: list = []
 
 
-def _snapshot(a) -> np.ndarray:
-    """``a`` on the host as it is now: a device array's read-only view, a copy of
-    a writable host array (the caller may change it later)."""
+def _snapshot(a):
+    """``a`` as it is now: a device array itself (immutable), a host array's
+    read-only view, or a copy of a writable one (the caller may change it later)."""
+    if isinstance(a, jax.Array):
+        return a
     v = np.asarray(a)
     return v.copy() if v.flags.writeable else v
 
 
 def _same(a, b) -> bool:
+    if a is b:  # the same device array (``Problem.data`` hands out the same ones)
+        return True
     a, b = np.asarray(a), np.asarray(b)
     return (a.shape == b.shape and a.dtype == b.dtype
             and np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"))

@@ -78,10 +78,16 @@ def standing_out(J, dzs) -> np.ndarray:
     dirs = dzs / np.maximum(np.linalg.norm(dzs, axis=1, keepdims=True), 1e-300)
     lead = np.take_along_axis(dirs, np.argmax(np.abs(dirs), axis=1)[:, None], axis=1)
     dirs = np.unique(np.round(dirs * np.sign(lead), 9), axis=0)
-    v = J @ dirs.T
-    v = (v * v).reshape(-1, 3, len(dirs))
-    v = v[:, 0] + v[:, 1] + v[:, 2]  # (P, directions); NumPy's sum over 3 is ~10x slower
-    return np.any(v > STAND_OUT * np.maximum(v.mean(axis=0), 1e-300), axis=1)
+    # Direction-major (k, 3P): each pass below runs over contiguous rows (pixel-major
+    # (3P, k) took 8 ms at 256^2 in strided sums and a reduction over k).
+    v = dirs @ J.T
+    v *= v
+    v = v.reshape(len(dirs), -1, 3) @ np.ones(3)  # (k, P); NumPy's sum over 3 is ~10x slower
+    limit = STAND_OUT * np.maximum(v.mean(axis=1), 1e-300)
+    out = np.zeros(v.shape[1], dtype=bool)
+    for row, lim in zip(v, limit):
+        out |= row > lim
+    return out
 
 
 def strata(geometry, J, dzs) -> np.ndarray:

@@ -203,6 +203,9 @@ class Problem:
     warnings: tuple[str, ...] = ()
     base_dir: str | None = None  # a relative envmap path is resolved against it
     alive: frozenset = frozenset()  # keys the start search saw change the cost (``_search``)
+    # ``data``'s arrays by (target, stride): made once (a 256^2 fit asked four times,
+    # ~1 ms of copies each); a replaced Problem starts empty (init=False).
+    _data: dict = dataclasses.field(default_factory=dict, init=False, repr=False)
 
     @classmethod
     def make(cls, targets, scene, material, *, init=None, fixed=None, bounds=None,
@@ -301,7 +304,13 @@ class Problem:
 
     def data(self, b: int | None, stride: int = 1) -> Data:
         """Arrays of target ``b`` (all targets stacked if None); every
-        ``stride``-th fitted pixel only if ``stride`` > 1."""
+        ``stride``-th fitted pixel only if ``stride`` > 1. The same arrays at
+        each call (device arrays are immutable)."""
+        if (b, stride) not in self._data:
+            self._data[b, stride] = self._make_data(b, stride)
+        return self._data[b, stride]
+
+    def _make_data(self, b: int | None, stride: int) -> Data:
         free = {blk.key for blk in self.blocks}
         fixed = {k: self.cast(v) for k, v in self.init_full.items() if k not in free}
         sel = slice(None) if b is None else b
