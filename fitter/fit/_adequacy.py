@@ -102,19 +102,20 @@ def block_ids(pixel_index, width: int) -> tuple[np.ndarray, int]:
     return ids, uniq.size
 
 
-def sandwich(J, r, ids, n_blocks: int):
+def sandwich(J, r, ids, n_blocks: int, gram=None):
     """V_hac (n, n) of the fit coordinates: J (N, n) the Jacobian of the
-    residuals r (N,) (3 per pixel, channel fastest), ``ids`` (N // 3,) blocks."""
+    residuals r (N,) (3 per pixel, channel fastest), ``ids`` (N // 3,) blocks;
+    ``gram``: J^T J if the caller has it."""
     J = np.asarray(J, dtype=np.float64)
     n = J.shape[1]
     rows = np.repeat(np.asarray(ids), J.shape[0] // len(ids))
-    Jr = J * np.asarray(r, dtype=np.float64)[:, None]
-    # Block sums per column (bincount: ~10x faster than np.add.at, same sums
-    # up to the order of addition).
+    # (n, N), each column of J r contiguous for its block sums (bincount: ~10x
+    # faster than np.add.at, same sums up to the order of addition).
+    Jr = np.multiply(J.T, np.asarray(r, dtype=np.float64), order="C")
     g = np.zeros((n_blocks, n))
     for j in range(n):
-        g[:, j] = np.bincount(rows, Jr[:, j], minlength=n_blocks)
-    bread = np.linalg.pinv(J.T @ J, hermitian=True)
+        g[:, j] = np.bincount(rows, Jr[j], minlength=n_blocks)
+    bread = np.linalg.pinv(J.T @ J if gram is None else gram, hermitian=True)
     meat = g.T @ g * n_blocks / max(n_blocks - n, 1)
     return bread @ meat @ bread
 

@@ -59,6 +59,8 @@ def scaled_jacobian(spec: Spec, z, J) -> np.ndarray:
     """J (or its R factor) in the coordinates of ``covariance``: the column of a
     value at its bound divided by dx/dz, times its natural scale."""
     x, dxdz, scale, edge = frame(spec, np.asarray(z, dtype=np.float64))
+    if not np.any(edge):  # nothing to rescale: J itself, not a copy (3 MB at 256^2)
+        return np.asarray(J, dtype=np.float64)
     J = np.array(J, dtype=np.float64)
     J[:, edge] *= (scale / np.where(dxdz > 0, dxdz, np.inf))[edge]
     return J

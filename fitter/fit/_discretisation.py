@@ -455,14 +455,15 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
     return out
 
 
-def shift(J, d) -> np.ndarray:
+def shift(J, d, gram=None) -> np.ndarray:
     """delta_z (n,) = (J^T J)^-1 J^T d: the parameter shift a residual change
     ``d`` (N,) makes through the linearisation ``J`` (N, n) (both weighted);
-    (n, k) for k changes ``d`` (N, k) at once.
+    (n, k) for k changes ``d`` (N, k) at once; ``gram``: J^T J if the caller has it.
 
     By the normal equations (a least-squares solve of the n x n system, so a
     singular J^T J still gives the minimum-norm shift): 0.8 ms at 256^2, 7 ms
     by SVD of J; they lose cond(J)^2 eps relative, an error term needs a few digits.
     """
     J = np.asarray(J, dtype=np.float64)
-    return np.linalg.lstsq(J.T @ J, J.T @ np.asarray(d, dtype=np.float64), rcond=None)[0]
+    gram = J.T @ J if gram is None else gram
+    return np.linalg.lstsq(gram, J.T @ np.asarray(d, dtype=np.float64), rcond=None)[0]

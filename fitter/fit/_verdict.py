@@ -218,9 +218,10 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     """
     J, r, _ = jac_full(spec, z, data)
     Js = scaled_jacobian(spec, z, J)
+    gram = Js.T @ Js  # the sandwich's and the shifts'
     pix = np.asarray(problem.renderer.pixel_index)[problem.rows]
     ids, n_blocks = _adequacy.block_ids(pix, problem.renderer.scene.width)
-    cov_hac = _adequacy.sandwich(Js, r, ids, n_blocks)
+    cov_hac = _adequacy.sandwich(Js, r, ids, n_blocks, gram)
     cov_sys = _adequacy.systematic(cov_stat, cov_hac, n_blocks)
     info = {"n_blocks": int(n_blocks),
             "hac_over_stat_max": float(np.sqrt(np.max(
@@ -251,7 +252,8 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     # One least-squares solve for every shift; independent, they add in quadrature.
     deltas = _discretisation.shift(Js, np.stack(
         [(diff * w * scale[:, None]).reshape(-1), (rings * w * scale[:, None]).reshape(-1)]
-        + [(s * np.asarray(data.weights, dtype=np.float64)).reshape(-1) for s in sky], axis=1))
+        + [(s * np.asarray(data.weights, dtype=np.float64)).reshape(-1) for s in sky], axis=1),
+        gram)
     cov_disc = deltas @ deltas.T
     info["discretisation"] = {
         "supersampling": [problem.renderer.scene.supersampling,
