@@ -74,6 +74,32 @@ def test_regions_follow_the_geometry():
     assert regions["body"]["pixels"] > regions["highlight"]["pixels"]
 
 
+def test_block_ids_and_region_stats_equal_their_direct_definitions():
+    """The sandwich's blocks: ids equal ``np.unique``'s inverse of the block keys
+    (the definition); per-region statistics equal masked sums per region."""
+    rng = np.random.default_rng(3)
+    for width, n in ((256, 60000), (37, 500), (64, 1)):
+        pix = np.sort(rng.choice(width * width, n, replace=False))
+        ids, n_blocks = _adequacy.block_ids(pix, width)
+        side = max(_adequacy.MIN_SIDE, int(round(np.sqrt(n / _adequacy.N_BLOCKS))))
+        key = (pix // width // side) * (width // side + 1) + pix % width // side
+        uniq, inverse = np.unique(key, return_inverse=True)
+        assert np.array_equal(ids, inverse) and n_blocks == uniq.size
+    r = rng.normal(size=(900, 3))
+    weights = (rng.random((900, 3)) > 0.1).astype(float)
+    labels = rng.integers(0, 3, 900)
+    stats = _adequacy.region_stats(r, weights, labels, 0.5)
+    e = np.where(weights > 0, r, 0.0) ** 2
+    for k, name in enumerate(_adequacy.REGIONS):
+        sel = labels == k
+        assert stats[name]["pixels"] == sel.sum()
+        np.testing.assert_allclose(stats[name]["rmse_over_noise"],
+                                   np.sqrt(e[sel].sum() / (weights[sel] > 0).sum()) / 0.5,
+                                   rtol=1e-12)
+        np.testing.assert_allclose(stats[name]["energy_share"], e[sel].sum() / e.sum(),
+                                   rtol=1e-12)
+
+
 def test_wrong_model_with_agreeing_starts_blames_the_model():
     target = np.asarray(fitter.render(GLOSSY, SCENE.replace(supersampling=4)))
     r = fitter.fit(target, SCENE, "lambert", n_starts=2)

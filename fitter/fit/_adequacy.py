@@ -98,8 +98,11 @@ def block_ids(pixel_index, width: int) -> tuple[np.ndarray, int]:
     side = max(MIN_SIDE, int(round(np.sqrt(pix.size / N_BLOCKS))))
     row, col = pix // width, pix % width
     key = (row // side) * (width // side + 1) + col // side
-    uniq, ids = np.unique(key, return_inverse=True)
-    return ids, uniq.size
+    # np.unique's inverse without its sort: the keys are few and small.
+    present = np.zeros(int(key.max(initial=-1)) + 1, dtype=bool)
+    present[key] = True
+    rank = np.cumsum(present) - 1
+    return rank[key], int(np.count_nonzero(present))
 
 
 def sandwich(J, r, ids, n_blocks: int, gram=None):
@@ -143,16 +146,20 @@ def region_stats(r, weights, labels, scale: float) -> dict:
     used = np.asarray(weights).reshape(-1, 3) > 0
     e = np.where(used, r, 0.0) ** 2
     total = max(float(e.sum()), 1e-300)
+    labels = np.asarray(labels)
+    # Per region in one pass each (bincount), not three boolean gathers per region.
+    k = len(REGIONS)
+    pixels = np.bincount(labels, minlength=k)
+    counts = np.bincount(labels, used @ np.ones(3), minlength=k)
+    energy = np.bincount(labels, e @ np.ones(3), minlength=k)
     out = {}
-    for k, name in enumerate(REGIONS):
-        sel = labels == k
-        n = int(used[sel].sum())
-        if n == 0:
+    for i, name in enumerate(REGIONS):
+        if counts[i] == 0:
             continue
-        out[name] = {"pixels": int(sel.sum()),
-                     "rmse_over_noise": float(np.sqrt(e[sel].sum() / n) / scale)
+        out[name] = {"pixels": int(pixels[i]),
+                     "rmse_over_noise": float(np.sqrt(energy[i] / counts[i]) / scale)
                      if scale > 0 else 0.0,
-                     "energy_share": float(e[sel].sum() / total)}
+                     "energy_share": float(energy[i] / total)}
     return out
 
 
