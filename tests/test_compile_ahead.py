@@ -156,3 +156,29 @@ def test_sun_lit_finer_geometries_made_ahead_give_the_same_fit(sun_probe, finer_
     assert made_on == [(4, "MainThread"), (2, "MainThread"), (2, "MainThread")]
     _same(ahead, here, truth)
     assert np.all(np.asarray(ahead.stderr_disc["torrance_sparrow.m"]) > 0)
+
+
+def test_a_compile_started_behind_waits_for_those_started_before(monkeypatch):
+    """``compile_ahead(behind=True)`` (the cost profile's, ``_profile.ahead``)
+    compiles only after the compiles already started ahead (the solve's, which
+    the fit needs first) have ended."""
+    order = []
+    gate = threading.Event()
+    earlier = threading.Thread(target=lambda: (gate.wait(10), order.append("earlier")))
+    monkeypatch.setattr(_compile, "_PENDING", {"earlier": (earlier, [])})
+    monkeypatch.setattr(_compile, "_COMPILED", {})
+    monkeypatch.setattr(_compile, "_function", lambda kind, spec, static: None)
+    monkeypatch.setattr(_compile, "lower_cached", lambda f, args, key: "lowered")
+    monkeypatch.setattr(_compile, "_options", lambda kind, once, spec: {})
+    monkeypatch.setattr(_compile, "_compile_lowered",
+                        lambda lowered, options, x64: order.append("behind") or "exe")
+    earlier.start()
+    _compile.compile_ahead("residuals", "spec", (np.zeros(2),), behind=True)
+    behind = [t for k, (t, _) in _compile._PENDING.items() if k != "earlier"]
+    assert len(behind) == 1
+    behind[0].join(0.3)
+    assert order == []  # still waiting
+    gate.set()
+    earlier.join()
+    behind[0].join()
+    assert order == ["earlier", "behind"]

@@ -7,6 +7,8 @@ evaluated on every pixel (``_compile.costs_at``, the code the subset replaces).
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 from scipy.special import chdtri
@@ -205,3 +207,47 @@ def test_rows_picked_in_the_executable_equal_the_host_subset():
     env = geo._replace(env_index=np.zeros(4, np.int64))
     with pytest.raises(ValueError, match="subset"):
         env.take(rows)
+
+
+def test_under_a_sky_the_profile_is_compiled_ahead_and_states_the_same(tmp_path, monkeypatch):
+    """Under a sky (env samples: the subset's evaluation is compiled for its own
+    shapes) ``_profile.ahead`` picks the pixels the profile picks where none stands
+    out, and compiles their evaluation on the compile-ahead thread while the solve
+    runs: the profile then compiles nothing on the main thread, and the fit equals
+    one whose profile made its subset in line."""
+    from fitter.fit import _compile
+    from fitter.imageio import write_image
+
+    img = np.full((16, 32, 3), 0.3)
+    img[5, 9] = [3000.0, 2900.0, 2500.0]  # a sun
+    write_image(str(tmp_path / "sun.exr"), img)
+    scene = fitter.Scene(width=96, height=96, supersampling=1, environment=fitter.Environment(
+        type="envmap", file=str(tmp_path / "sun.exr")))
+    truth = {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.15,
+             "torrance_sparrow.eta": 1.5}
+    clean = np.asarray(fitter.render(truth, scene))
+    target = clean + np.random.default_rng(0).normal(0.0, 2e-3, clean.shape)
+    built = []
+    build, ahead = _compile._build, _profile.ahead
+
+    def build_rec(kind, *args):
+        built.append((kind, threading.current_thread().name))
+        return build(kind, *args)
+
+    monkeypatch.setattr(_compile, "_build", build_rec)
+    monkeypatch.setattr(_compile, "_COMPILED", {})
+    used = []
+    made = _profile._made_ahead
+    monkeypatch.setattr(_profile, "_made_ahead", lambda d, r: used.append(made(d, r)) or used[-1])
+    first = fitter.fit(target, scene, "lambert+torrance_sparrow")
+    assert first.status == "converged"
+    assert used and used[0] is not None  # the profile ran on the subset made ahead
+    assert ("residuals", threading.main_thread().name) not in built
+
+    monkeypatch.setattr(_profile, "ahead", lambda *a: None)
+    used.clear()
+    again = fitter.fit(target, scene, "lambert+torrance_sparrow")
+    assert used == [None] and ahead is not _profile.ahead
+    for part in ("params", "stderr", "stderr_sys", "stderr_disc"):
+        for key in truth:
+            np.testing.assert_array_equal(getattr(first, part)[key], getattr(again, part)[key])

@@ -239,7 +239,8 @@ def _compile_lowered(lowered, options: dict, x64: bool):
 _PENDING: dict = {}
 
 
-def compile_ahead(kind: str, spec: Spec, args, once: bool = False, **static) -> None:
+def compile_ahead(kind: str, spec: Spec, args, once: bool = False, behind: bool = False,
+                  **static) -> None:
     """Trace what ``compiled(kind, spec, args, once, **static)`` will ask for
     here and start XLA's compile of it on a thread, which releases the
     interpreter: the caller's next work (tracing and compiling a check) runs
@@ -249,7 +250,8 @@ def compile_ahead(kind: str, spec: Spec, args, once: bool = False, **static) -> 
     gives the same result either way. A guess that turns out wrong (other
     shapes or structure when asked) is only compile time spent; a failure
     here or on the thread is compiled again where asked. ``wait`` joins the
-    threads.
+    threads. ``behind``: compile after the compiles started ahead before it
+    (needed first: the solve's).
     """
     key = _key(kind, spec, args, once, static)
     if key in _COMPILED or key in _PENDING:
@@ -262,8 +264,11 @@ def compile_ahead(kind: str, spec: Spec, args, once: bool = False, **static) -> 
         return
     catch_up()
     box: list = []
+    first = [t for t, _ in _PENDING.values()] if behind else []
 
     def run():
+        for t in first:
+            t.join()
         try:
             box.append(_compile_lowered(lowered, _options(kind, once, spec), x64))
         except Exception:  # noqa: BLE001 (compiled again, and any error raised, where asked)

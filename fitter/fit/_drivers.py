@@ -22,13 +22,13 @@ from ..blasthreads import one_blas_thread
 from ..hugepages import advice_off
 from ..limits import check_fit
 from ..scene import Scene
-from . import _args, _coarse, _discretisation, _edge
+from . import _args, _coarse, _discretisation, _edge, _profile
 from ._ahead import import_ahead, settled
 from ._compile import (best_start, compile_ahead, compiled, jac_res, r_factor,
                        remember_jacobian)
 from ._covariance import residual_variance
-from ._identify import (WEAK_EIG, ambiguous, chi2_1dof_level, dead_columns, unidentifiable_at,
-                        weak_direction, weak_profile)
+from ._identify import (WEAK_EIG, ambiguous, chi2_1dof_level, dead_columns, profile_size,
+                        unidentifiable_at, weak_direction, weak_profile)
 from ._problem import blocks_of, format_value, user_values, z_from_params
 from ._search import cheapened, searched
 from ._setup import START_MARGIN, FitError, Problem
@@ -132,6 +132,11 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     t_compile = 0.0
     # Damped solves check for parameters without effect after the solve (``_checked_after``).
     after = identifiability and problem.static["solver_name"] in CHECK_AFTER
+    # The stated error's finer geometry (NumPy) on a thread from here, beside the
+    # solve's tracing, compile and run; after the start check where one comes first
+    # (its holds change the problem).
+    if after:
+        _discretisation.prefetch(problem)
     if identifiability:
         if not coarse:  # the solve traced, compiled on a thread beside what follows
             compile_ahead("solve", problem.spec, (problem.cast(problem.z_init()[None]),
@@ -141,10 +146,11 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
             problem, t_compile = _hold_dead_columns(problem, coarse)
             if not problem.blocks:
                 return all_held(problem, 0, t_compile, 0.0)
-    # The stated error's finer geometry (NumPy) on a thread from here: beside the
-    # solve's and the profile's XLA runs, after a start check made first.
-    _discretisation.prefetch(problem)
+    if not after:
+        _discretisation.prefetch(problem)
     data = problem.data(0)
+    if n_starts == 1 and identifiability:  # the cost profile's pixels (``weak_profile``)
+        _profile.ahead(problem.spec, data, profile_size(problem.spec.n))
     z0s = make_starts(problem.spec, problem.z_init(), n_starts)
     first = None
     if coarse:

@@ -218,6 +218,11 @@ def profile_points(spec: Spec, z, J, s2: float):
     return out
 
 
+def profile_size(n: int) -> int:
+    """How many points ``profile_points`` gives for n coordinates (when it gives any)."""
+    return (n + 1) * len(PROFILE_T) * 2
+
+
 def chi2_1dof_level() -> float:
     """The ``AMBIGUOUS_LEVEL`` quantile of chi^2 with 1 dof, z^2 of the normal's
     (``scipy.special.chdtri(1, 1 - level)`` to 1e-15 relative, without its

@@ -133,18 +133,59 @@ def subset_rows(labels, stride: int = BODY_STRIDE, highlight_stride: int = HIGHL
     return rows[order], weight[order]
 
 
-def subset_data(data, rows):
+def subset_data(data, rows, geometry=None):
     """``data`` with the fitted pixels ``rows`` only (arrays of the same dtypes),
-    with their own env samples and sky-table rows (``Geometry.subset``)."""
-    geo = data.geometry
-    # The fit's geometry drops pixel_index (``_setup``); subset indexes it.
-    geo = geo._replace(pixel_index=np.zeros(np.shape(data.target)[0], np.int64))
-    # Picked on the host and put on the device (``to_device``): indexing device arrays
-    # and ``jnp.asarray`` compiled 14 small kernels on a first run (0.2 s at 128^2).
-    geo = jax.tree_util.tree_map(to_device, geo.subset(rows, own_samples=True)._replace(
-        pixel_index=None))
-    return data._replace(geometry=geo, target=to_device(np.asarray(data.target)[rows]),
+    with their own env samples and sky-table rows (``Geometry.subset``);
+    ``geometry``: that subset's geometry if made already (``ahead``)."""
+    if geometry is None:
+        geo = data.geometry
+        # The fit's geometry drops pixel_index (``_setup``); subset indexes it.
+        geo = geo._replace(pixel_index=np.zeros(np.shape(data.target)[0], np.int64))
+        # Picked on the host and put on the device (``to_device``): indexing device arrays
+        # and ``jnp.asarray`` compiled 14 small kernels on a first run (0.2 s at 128^2).
+        geometry = jax.tree_util.tree_map(to_device, geo.subset(rows, own_samples=True)._replace(
+            pixel_index=None))
+    return data._replace(geometry=geometry, target=to_device(np.asarray(data.target)[rows]),
                          weights=to_device(np.asarray(data.weights)[rows]))
+
+
+#: The subset ``ahead`` made for the fit running now: [(the fit's geometry, rows,
+#: the subset's geometry)], taken by ``subset_costs``.
+_AHEAD: list = []
+
+
+def ahead(spec, data, n_points: int) -> None:
+    """Under environment samples (the subset's evaluation is compiled for its own
+    shapes), pick the profile's pixels as ``subset_costs`` will where no pixel
+    stands out (``strata`` without the Jacobian: the geometry's regions), make
+    their geometry and start compiling their evaluation at ``n_points`` points
+    behind the compiles already started (``_compile.compile_ahead``): the profile
+    of a first env fit then compiles nothing (env_plastic: ~1.2 s of tracing and
+    compiling at its end). Where a pixel does stand out, ``subset_costs`` picks
+    other pixels and compiles as before (the pick, hence the values, never
+    depend on this)."""
+    from ._adequacy import pixel_regions
+    from ._compile import compile_ahead
+
+    _AHEAD.clear()
+    if (not ENABLED or not data.geometry.has_env_samples
+            or np.shape(data.target)[0] < MIN_PIXELS):
+        return
+    picks = subset_rows(pixel_regions(data.geometry))
+    if picks is None:
+        return
+    sub = subset_data(data, picks[0])
+    zs = to_device(np.zeros((n_points, spec.n)), data.target.dtype)
+    compile_ahead("residuals", spec, (zs, sub), behind=True)
+    _AHEAD.append((data.geometry, picks[0], sub.geometry))
+
+
+def _made_ahead(data, rows):
+    """The subset geometry ``ahead`` made for these rows of this fit, else None."""
+    made = _AHEAD.pop() if _AHEAD else None
+    if made is None or made[0] is not data.geometry or not np.array_equal(made[1], rows):
+        return None
+    return made[2]
 
 
 def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float):
@@ -201,7 +242,7 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
         return None
     rows, weight = picks
     if data.geometry.has_env_samples:  # their rows are remapped on the host
-        r_sub = residuals_at_points(spec, zs, subset_data(data, rows))
+        r_sub = residuals_at_points(spec, zs, subset_data(data, rows, _made_ahead(data, rows)))
     else:
         r_sub = residuals_of_rows(spec, zs, data, rows)
     rise, se = estimated_rises(J, r, dzs, r_sub, rows, weight, s2)
