@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import envlight
 from ..blasthreads import one_blas_thread
 from ..hugepages import advice_off
 from ..limits import check_fit
@@ -132,10 +133,14 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     t_compile = 0.0
     # Damped solves check for parameters without effect after the solve (``_checked_after``).
     after = identifiability and problem.static["solver_name"] in CHECK_AFTER
-    # The stated error's finer geometry (NumPy) on a thread from here, beside the
-    # solve's tracing, compile and run; after the start check where one comes first
-    # (its holds change the problem).
-    if after:
+    # The stated error's finer geometries (NumPy, XLA compiles) on a thread from
+    # here, beside the solve's compile and run; after the start check where one
+    # comes first (its holds change the problem). Under a sky (sun cells at 2k
+    # samples, a finer sun, half the rings: ~3 s of a first env fit) from before
+    # the solve's tracing too (env_plastic's first fit -0.15 s); a dielectric's
+    # short one gained nothing there (first run 5.30 s against 5.24 s, 4 pairs).
+    early = after and envlight.lit_by_environment(problem.renderer.scene, problem.material)
+    if early:
         _discretisation.prefetch(problem)
     if identifiability:
         if not coarse:  # the solve traced, compiled on a thread beside what follows
@@ -146,7 +151,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
             problem, t_compile = _hold_dead_columns(problem, coarse)
             if not problem.blocks:
                 return all_held(problem, 0, t_compile, 0.0)
-    if not after:
+    if not early:
         _discretisation.prefetch(problem)
     data = problem.data(0)
     if n_starts == 1 and identifiability:  # the cost profile's pixels (``weak_profile``)
