@@ -120,8 +120,9 @@ def test_storing_removes_only_this_kinds_files_of_other_sources(cache_folder, mo
 def test_a_sky_lit_fit_makes_the_stencil_tables_on_its_import_thread(no_cache_folder,
                                                                       monkeypatch):
     """``fit._ahead.import_ahead``: where the environment lights an opaque lobe, the
-    tables the set-up asks for (``geometry.build_geometry``'s calls) are made on the
-    thread; a mirror under the same sky, or a cache folder, starts no such work."""
+    tables the set-up asks for (``geometry.build_geometry``'s calls) are made (or,
+    with a cache folder, loaded) on the thread; a mirror under the same sky, or a
+    material not yet parsed, starts no such work."""
     from fitter import Environment, Material, Scene
     from fitter.fit import _ahead
 
@@ -140,7 +141,8 @@ def test_a_sky_lit_fit_makes_the_stencil_tables_on_its_import_thread(no_cache_fo
     assert run({"lobes": ["lambert"]}) == 0  # not parsed yet: no guess
     jax.config.update("jax_compilation_cache_dir", "/nonexistent-cache")
     try:
-        assert run(Material.make(["lambert"])) == 0
+        assert run(Material.make(["lambert"])) == 1
+        assert run(Material.make(["mirror"])) == 0
     finally:
         jax.config.update("jax_compilation_cache_dir", None)
 

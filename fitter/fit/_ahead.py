@@ -22,23 +22,24 @@ def import_ahead(scene=None, material=None) -> None:
     """Import optimistix (0.3 s, which tracing the solve needs) on a thread,
     beside the set-up's NumPy and the start search's XLA compile, and, where the
     environment lights an opaque lobe, make the sky stencil's constant tables
-    there (``skystencil.warm``: 0.3 s of NumPy the set-up would wait for); not
-    when the traces and tables may come from disk (``_cache``,
-    ``compilation_cache.cached_arrays``)."""
+    there (``skystencil.warm``: 0.3 s of NumPy the set-up would wait for, or
+    their files' loading where a cache folder holds them,
+    ``compilation_cache.cached_arrays``); optimistix not when the traces may
+    come from disk (``_cache``), which run without it."""
     import sys
 
-    if active_dir():
-        return
     sky = (scene is not None and isinstance(material, Material)
            and lit_by_environment(scene, material))
-    if "optimistix" in sys.modules and not sky:
+    solver = "optimistix" not in sys.modules and not active_dir()
+    if not (sky or solver):
         return
 
     def load():
         try:
             if sky:  # first: the set-up asks for them before the trace needs optimistix
                 skystencil.warm()
-            import optimistix  # noqa: F401
+            if solver:
+                import optimistix  # noqa: F401
         except Exception:  # noqa: BLE001 (made again, and any error raised, where needed)
             pass
 
