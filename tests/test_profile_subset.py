@@ -243,6 +243,7 @@ def test_under_a_sky_the_profile_is_compiled_ahead_and_states_the_same(tmp_path,
     assert first.status == "converged"
     assert used and used[0] is not None  # the profile ran on the subset made ahead
     assert ("residuals", threading.main_thread().name) not in built
+    assert not _profile._AHEAD  # nothing kept after the fit
 
     monkeypatch.setattr(_profile, "ahead", lambda *a: None)
     used.clear()

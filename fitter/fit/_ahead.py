@@ -11,7 +11,7 @@ from .. import skystencil
 from ..compilation_cache import active_dir
 from ..envlight import lit_by_environment
 from ..material import Material
-from . import _compile, _discretisation
+from . import _compile, _discretisation, _profile
 
 
 #: Threads importing the solver library (``import_ahead``).
@@ -49,8 +49,9 @@ def import_ahead(scene=None, material=None) -> None:
 
 def settled(f):
     """``f`` that leaves no thread of its own running (``import_ahead``,
-    ``compile_ahead``, ``_discretisation.prefetch``) when it returns or raises
-    an error (an interrupt is not held up for them)."""
+    ``compile_ahead``, ``_discretisation.prefetch``) nor a profile subset made
+    ahead (``_profile.ahead``) when it returns or raises an error (an interrupt
+    is not held up for them)."""
     def settle():
         for thread in list(_IMPORTS):  # (fits on other threads may settle them too)
             thread.join()
@@ -58,6 +59,7 @@ def settled(f):
                 _IMPORTS.remove(thread)
         _compile.wait()
         _discretisation.wait()
+        _profile.forget()
 
     @functools.wraps(f)
     def g(*args, **kwargs):

@@ -180,6 +180,12 @@ def ahead(spec, data, n_points: int) -> None:
     _AHEAD.append((data.geometry, picks[0], sub.geometry))
 
 
+def forget() -> None:
+    """Drop what ``ahead`` made (env_plastic's subset holds ~80 MB of sky-table
+    rows): a fit whose profile did not run leaves nothing behind."""
+    _AHEAD.clear()
+
+
 def _made_ahead(data, rows):
     """The subset geometry ``ahead`` made for these rows of this fit, else None."""
     made = _AHEAD.pop() if _AHEAD else None

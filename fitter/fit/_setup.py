@@ -203,7 +203,7 @@ class Problem:
     warnings: tuple[str, ...] = ()
     base_dir: str | None = None  # a relative envmap path is resolved against it
     alive: frozenset = frozenset()  # keys the start search saw change the cost (``_search``)
-    # ``data``'s arrays by (target, stride): made once (a 256^2 fit asked four times,
+    # ``data``'s arrays by (b, stride): made once (a 256^2 fit asked four times,
     # ~1 ms of copies each); a replaced Problem starts empty (init=False).
     _data: dict = dataclasses.field(default_factory=dict, init=False, repr=False)
 
