@@ -181,8 +181,8 @@ def ahead(spec, data, n_points: int) -> None:
 
 
 def forget() -> None:
-    """Drop what ``ahead`` made (env_plastic's subset geometry holds 92 MB, most of it sky-table
-    rows): a fit whose profile did not run leaves nothing behind."""
+    """Drop what ``ahead`` made (env_plastic's subset geometry: 92 MB, most of it
+    sky-table rows): a fit whose profile did not run leaves nothing behind."""
     _AHEAD.clear()
 
 
