@@ -117,6 +117,7 @@ def test_storing_removes_only_this_kinds_files_of_other_sources(cache_folder, mo
     assert len([n for n in names if n.startswith("fitter-probe-") and n.endswith(".npz")
                 and n not in kept]) == 2  # both of these sources' keys
 
+
 def test_a_sky_lit_fit_makes_the_stencil_tables_on_its_import_thread(no_cache_folder,
                                                                       monkeypatch):
     """``fit._ahead.import_ahead``: where the environment lights an opaque lobe, the
