@@ -90,18 +90,20 @@ def standing_out(J, dzs) -> np.ndarray:
     return out
 
 
-def strata(geometry, J, dzs) -> np.ndarray:
+def strata(geometry, J=None, dzs=None) -> np.ndarray:
     """(P,) stratum of each fitted pixel for ``subset_rows``: its region (0 body,
     1 highlight, 2 rim: ``_adequacy.pixel_regions``), or 3 for a body pixel
     that stands out (``standing_out``), where a pick stands for
-    ``BODY_STRIDE``. Measured (``benchmarks/profile_subset.py``, the six
+    ``BODY_STRIDE``; without ``J`` (before the fit: ``ahead``) the regions
+    alone, the strata where no pixel stands out. Measured (``benchmarks/profile_subset.py``, the six
     cases in one session): also taking the highlight's and rim's whole made
     env_plastic's profile 0.31 -> 0.34 s and the estimates' largest errors
     0.27-1.24 guarded standard errors, against 0.27-1.27: no gain."""
     from ._adequacy import pixel_regions
 
     labels = pixel_regions(geometry).copy()  # the kept labels are read-only
-    labels[standing_out(J, dzs) & (labels == 0)] = 3
+    if J is not None:
+        labels[standing_out(J, dzs) & (labels == 0)] = 3
     return labels
 
 
@@ -157,21 +159,20 @@ _AHEAD: list = []
 def ahead(spec, data, n_points: int) -> None:
     """Under environment samples (the subset's evaluation is compiled for its own
     shapes), pick the profile's pixels as ``subset_costs`` will where no pixel
-    stands out (``strata`` without the Jacobian: the geometry's regions), make
+    stands out (``strata`` without the Jacobian), make
     their geometry and start compiling their evaluation at ``n_points`` points
     behind the compiles already started (``_compile.compile_ahead``): the profile
     of a first env fit then compiles nothing (env_plastic: ~1.2 s of tracing and
     compiling at its end). Where a pixel does stand out, ``subset_costs`` picks
     other pixels and compiles as before (the pick, hence the values, never
     depend on this)."""
-    from ._adequacy import pixel_regions
     from ._compile import compile_ahead
 
     _AHEAD.clear()
     if (not ENABLED or not data.geometry.has_env_samples
             or np.shape(data.target)[0] < MIN_PIXELS):
         return
-    picks = subset_rows(pixel_regions(data.geometry))
+    picks = subset_rows(strata(data.geometry))
     if picks is None:
         return
     sub = subset_data(data, picks[0])
