@@ -74,6 +74,39 @@ def test_coarse_to_fine_reaches_the_direct_fits_optimum_and_errors(target, monke
     assert fast.cost == pytest.approx(direct.cost, rel=1e-9)
 
 
+#: A float32 coarse stage only moves the finish's start: its result may differ
+#: from a float64 coarse stage's by this share of the stated errors (the
+#: finish's tolerance; measured 1e-11 relative at 256^2).
+FLOAT32_SHARE_OF_STDERR = 1e-3
+
+
+def test_the_coarse_stage_runs_in_float32_and_the_finish_decides(target, monkeypatch):
+    made, problem = [], _coarse.Problem
+
+    class Recorded:  # ``_coarse`` uses Problem for its coarse ``make`` only
+        @staticmethod
+        def make(*args, **kwargs):
+            made.append(np.dtype(kwargs["dtype"]))
+            return problem.make(*args, **kwargs)
+
+    with monkeypatch.context() as m:
+        m.setattr(_coarse, "Problem", Recorded)
+        single = _fit(target, True, monkeypatch)
+    monkeypatch.setattr(_coarse, "COARSE_DTYPE", np.float64)
+    double = _fit(target, True, monkeypatch)
+    assert made == [np.float32]
+    assert single.status == double.status == "converged"
+    for key, value in double.params.items():
+        assert np.asarray(single.params[key]).dtype == np.float64
+        if key not in double.stderr:  # held
+            assert single.params[key] == value
+            continue
+        np.testing.assert_array_less(np.abs(np.asarray(single.params[key]) - value),
+                                     FLOAT32_SHARE_OF_STDERR * np.asarray(double.stderr[key]))
+        np.testing.assert_allclose(single.stderr[key], double.stderr[key],
+                                   rtol=_stderr_rtol(3 * double.n_pixels))
+
+
 def test_a_finish_that_does_not_settle_falls_back_to_the_direct_fit(target, monkeypatch):
     monkeypatch.setattr(_coarse, "MAX_FINE_STEPS", 1)  # one step is never enough from 32^2
     lines = []
