@@ -111,7 +111,8 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
     coarse_scene = scene.replace(width=w, height=h, supersampling=scene.supersampling // 2)
     try:
         coarse = Problem.make(small[None], coarse_scene, problem.material,
-                              dtype=COARSE_DTYPE, base_dir=problem.base_dir)
+                              dtype=COARSE_DTYPE, base_dir=problem.base_dir,
+                              estimate_noise_level=False)
     except Exception:  # noqa: BLE001 (e.g. no interior pixel at half size: solve directly)
         return None
     coarse = dataclasses.replace(coarse, init_full=problem.init_full, blocks=problem.blocks,
