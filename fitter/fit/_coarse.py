@@ -40,12 +40,13 @@ MAX_FINE_STEPS = 4
 ENABLED = True
 #: The coarse stage's precision and tolerances. It only finds the start of the
 #: full-size finish (float64, which sets the result and its errors, and checks
-#: each step), so it runs in float32: its Jacobian and render are ~2.8x faster on
-#: CPU (256^2 plastic's full-size J 22 -> 8 ms). Its tolerances are looser than the
-#: fit's, above float32 rounding of the cost: at the fit's (1e-6, 1e-7) it took
-#: 18 steps, not 8, for no closer start; at these 8, the finish one step as in
-#: float64, the result within 2e-11 and the stated errors within 6e-7 (relative)
-#: of a float64 coarse stage's (benchmarks/coarse_to_fine.py).
+#: each step), so it runs in float32, where the model's Jacobian and render run
+#: ~2.8x faster on CPU (a 256^2 plastic Jacobian: 22 -> 8 ms). Its tolerances sit
+#: above float32's rounding of the cost: at the fit's own (1e-6, 1e-7) the 256^2
+#: coarse solve took 18 steps instead of 8 for no better start; at these it takes
+#: 8, the finish one step as after a float64 coarse stage, and the result is
+#: within 4e-11 and the stated errors within 6e-7 (relative) of that fit's
+#: (benchmarks/coarse_to_fine.py).
 COARSE_DTYPE = jnp.float32
 COARSE_RTOL, COARSE_ATOL = 1e-5, 1e-6
 #: A chord step settles the finish only where the residuals it linearises with
