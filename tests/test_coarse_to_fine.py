@@ -74,67 +74,6 @@ def test_coarse_to_fine_reaches_the_direct_fits_optimum_and_errors(target, monke
     assert fast.cost == pytest.approx(direct.cost, rel=1e-9)
 
 
-def _moved_within_precision(single, double):
-    """A float32 coarse stage only moves the finish's start, and the finish stops
-    within its tolerance of the optimum: its values may differ from a float64
-    coarse stage's by the share of the stated errors ``_stderr_rtol`` allows
-    them (measured: 1.1e-3 of a stated error at Phong e = 2000, 64^2, where
-    the direct fit and a float64 coarse stage differ by 2e-5; 1e-11 relative
-    at 256^2 plastic), and their stated errors likewise."""
-    assert single.status == double.status == "converged"
-    rtol = _stderr_rtol(3 * double.n_pixels)
-    for key, value in double.params.items():
-        assert np.asarray(single.params[key]).dtype == np.float64
-        if key not in double.stderr:  # held
-            assert single.params[key] == value
-            continue
-        err = np.asarray(double.stderr[key])
-        np.testing.assert_array_less(np.abs(np.asarray(single.params[key]) - value), rtol * err)
-        np.testing.assert_allclose(single.stderr[key], err, rtol=rtol)
-
-
-def test_the_coarse_stage_runs_in_float32_and_the_finish_decides(target, monkeypatch):
-    made, problem = [], _coarse.Problem
-
-    class Recorded:  # ``_coarse`` uses Problem for its coarse ``make`` only
-        @staticmethod
-        def make(*args, **kwargs):
-            made.append(np.dtype(kwargs["dtype"]))
-            return problem.make(*args, **kwargs)
-
-    with monkeypatch.context() as m:
-        m.setattr(_coarse, "Problem", Recorded)
-        single = _fit(target, True, monkeypatch)
-    monkeypatch.setattr(_coarse, "COARSE_DTYPE", np.float64)
-    double = _fit(target, True, monkeypatch)
-    assert made == [np.float32]
-    _moved_within_precision(single, double)
-
-
-@pytest.mark.parametrize("lobes, truth, init", [
-    ("lambert+torrance_sparrow", {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.01,
-                                  "torrance_sparrow.eta": 1.5}, {"torrance_sparrow.m": 0.05}),
-    ("lambert+phong", {"lambert.rho_d": [0.6, 0.4, 0.2], "phong.rho_s": 0.3, "phong.e": 2000.0},
-     {"phong.e": 500.0})])
-def test_a_sharp_lobe_ends_where_a_float64_coarse_stage_does(monkeypatch, lobes, truth, init):
-    # Float32 loses sharp lobes first (README: a float32 fit at m = 1e-3 was
-    # confidently wrong); the float64 finish must still decide. Measured at 192^2
-    # too (m = 0.003, eta = 1.01: both fall back to the direct fit alike).
-    material = fitter.Material.make(lobes.split("+"), {"torrance_sparrow.geometry": "smith"}
-                                    if "torrance_sparrow" in lobes else {})
-    img = np.asarray(fitter.render(material.full_params(truth), SCENE, material))
-    img = img + np.random.default_rng(2).normal(0.0, SIGMA, img.shape)
-    monkeypatch.setattr(_coarse, "ENABLED", True)
-    monkeypatch.setattr(_coarse, "MIN_PIXELS", 64 * 64)
-    fits = []
-    for dtype in (np.float32, np.float64):
-        monkeypatch.setattr(_coarse, "COARSE_DTYPE", dtype)
-        lines = []
-        fits.append(fitter.fit(img, SCENE, material, init=init, progress=lines.append))
-        assert any(ln.startswith("coarse 32x32: ") for ln in lines), lines
-    _moved_within_precision(*fits)
-
-
 def test_a_finish_that_does_not_settle_falls_back_to_the_direct_fit(target, monkeypatch):
     monkeypatch.setattr(_coarse, "MAX_FINE_STEPS", 1)  # one step is never enough from 32^2
     lines = []

@@ -1,7 +1,6 @@
 """Coarse-to-fine first solve of a large image: converge on the image averaged
 2 x 2 with half the sub-pixel samples per axis (1/16 of the work per step),
-in float32 (``COARSE_DTYPE``), then finish at full size in the fit's float64
-with undamped Gauss-Newton steps.
+then finish at full size with undamped Gauss-Newton steps.
 
 The full-size finish is checked, not trusted: each step must lower the cost,
 and the finish ends when the next Gauss-Newton step is within the solver's
@@ -38,17 +37,6 @@ MIN_PIXELS = 160 * 160
 MAX_FINE_STEPS = 4
 #: Off switch (benchmarks compare both ways).
 ENABLED = True
-#: The coarse stage's precision and tolerances. It only finds the start of the
-#: full-size finish (float64, which sets the result and its errors, and checks
-#: each step), so it runs in float32, where the model's Jacobian and render run
-#: ~2.8x faster on CPU (a 256^2 plastic Jacobian: 22 -> 8 ms). Its tolerances sit
-#: above float32's rounding of the cost: at the fit's own (1e-6, 1e-7) the 256^2
-#: coarse solve took 18 steps instead of 8 for no better start; at these it takes
-#: 8, the finish one step as after a float64 coarse stage, and the result is
-#: within 4e-11 and the stated errors within 6e-7 (relative) of that fit's
-#: (benchmarks/coarse_to_fine.py).
-COARSE_DTYPE = jnp.float32
-COARSE_RTOL, COARSE_ATOL = 1e-5, 1e-6
 #: A chord step settles the finish only where the residuals it linearises with
 #: a J one step old are off by at most this fraction of their norm at the
 #: optimum (``chord_step``): the noise then hides it. On a noise-free target
@@ -104,7 +92,6 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
     from ._solvers import outcome_table
 
     scene = problem.renderer.scene
-    rtol, atol = problem.static["rtol"], problem.static["atol"]
     h, w = scene.height // 2, scene.width // 2
     t = np.asarray(target, dtype=np.float64)
     # (a mean over the 2 x 2 axes of a reshape: 2.3 ms at 256^2, this 0.5 ms)
@@ -112,14 +99,12 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
     coarse_scene = scene.replace(width=w, height=h, supersampling=scene.supersampling // 2)
     try:
         coarse = Problem.make(small[None], coarse_scene, problem.material,
-                              dtype=COARSE_DTYPE, base_dir=problem.base_dir,
-                              estimate_noise_level=False)
+                              dtype=problem.dtype, base_dir=problem.base_dir)
     except Exception:  # noqa: BLE001 (e.g. no interior pixel at half size: solve directly)
         return None
     coarse = dataclasses.replace(coarse, init_full=problem.init_full, blocks=problem.blocks,
                                  loss=problem.loss, loss_scale=problem.loss_scale,
-                                 static={**problem.static, "rtol": max(rtol, COARSE_RTOL),
-                                         "atol": max(atol, COARSE_ATOL)})
+                                 static=problem.static)
     # The full-size finish's executables compiled on threads beside the coarse
     # solve's compile (a first run: each 0.1-0.5 s).
     compile_ahead("gauss_newton", problem.spec, (problem.cast(np.asarray(z0s[0])), data))
@@ -131,6 +116,7 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
     z = np.asarray(zs[best], dtype=np.float64)
     step, tc = compiled("gauss_newton", problem.spec, (problem.cast(z), data))
     t_compile += tc
+    rtol, atol = problem.static["rtol"], problem.static["atol"]
     prev = np.inf
     for k in range(1, MAX_FINE_STEPS + 1):
         R, r, J, dz, cost = jax.tree_util.tree_map(np.asarray, step(problem.cast(z), data))

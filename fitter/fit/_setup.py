@@ -211,12 +211,8 @@ class Problem:
     def make(cls, targets, scene, material, *, init=None, fixed=None, bounds=None,
              solver="levenberg_marquardt", mask="interior", exclude=None, weights=None,
              noise_sigma=None, loss="l2", loss_scale=None, saturation=None, max_steps=None,
-             rtol=RTOL, atol=ATOL, dtype=jnp.float64, base_dir=None,
-             estimate_noise_level: bool = True) -> Problem:
-        """Check the arguments of ``fit`` (``_args``) and set up targets (B, H, W, 3).
-
-        ``estimate_noise_level``: False leaves ``noise`` NaN (no estimate), for a
-        problem whose fit is not judged (``_coarse``'s: 2.5 ms of a 256^2 fit)."""
+             rtol=RTOL, atol=ATOL, dtype=jnp.float64, base_dir=None) -> Problem:
+        """Check the arguments of ``fit`` (``_args``) and set up targets (B, H, W, 3)."""
         scene = _args.scene_of(scene)
         material = material if isinstance(material, Material) else Material.make(material)
         if solver not in SOLVERS:
@@ -284,8 +280,7 @@ class Problem:
         geometry = _fitted_geometry(renderer, rows.astype(np.int64).tobytes())
         interior = np.zeros(scene.height * scene.width, dtype=bool)
         interior[renderer.pixel_index[rows]] = True
-        noise = ([estimate_noise(t, interior.reshape(scene.height, scene.width)) for t in targets]
-                 if estimate_noise_level else np.full((len(targets), 3), np.nan))
+        noise = [estimate_noise(t, interior.reshape(scene.height, scene.width)) for t in targets]
         return cls(material=material, renderer=renderer, geometry=geometry, rows=rows,
                    n_dropped=n_dropped, targets=np.where(usable, picked, 0.0), weights=w,
                    init_full=init_full, blocks=blocks, loss=loss,
