@@ -29,6 +29,8 @@ import sys
 import tempfile
 import time
 
+from _machine import host
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 STAGES = (("fit", r"^fitting .*?: ([\d.]+) s"), ("render", r"^rendering the fit: ([\d.]+) s"),
           ("validate", r"^validating .*?: ([\d.]+) s"), ("outputs", r"^writing outputs: ([\d.]+) s"))
@@ -91,10 +93,8 @@ def main(argv=None) -> int:
     finally:
         if args.before:
             subprocess.run(["git", "-C", ROOT, "worktree", "remove", "--force", wt], check=False)
-    load = os.getloadavg()
     print(f"`fitter fit {args.config}`, warm (second and later runs), {args.repeat} runs each, "
-          f"interleaved; {os.cpu_count()} CPUs, load average {load[0]:.1f} / {load[1]:.1f} "
-          f"(1 / 5 min) at the end\n")
+          f"interleaved; {host()} (1 / 5 min) at the end\n")
     print("| tree | validation | wall median s | wall min s | fit s | render s | validate s "
           "| outputs s | other s | peak RSS MB |")
     print("|---|---|---|---|---|---|---|---|---|---|")

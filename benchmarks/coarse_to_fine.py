@@ -45,6 +45,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _machine import host  # noqa: E402
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -83,9 +84,8 @@ def main(argv=None) -> int:
         for coarse in (False, True):
             for name, init in starts.items():
                 times.setdefault((name, coarse), []).append(fit(coarse, init))
-    load = os.getloadavg()
     print(f"{args.res}² plastic, fitter.fit compiled, {args.repeat} interleaved runs each; "
-          f"{os.cpu_count()} CPUs, load average {load[0]:.1f} / {load[1]:.1f} (1 / 5 min)\n")
+          f"{host()} (1 / 5 min)\n")
     print("| start | first solve | whole call min s | whole call median s | solver alone min s "
           "| steps | status | max rel. error vs truth | stderr m | |Δ m| vs direct "
           "| max |Δ stderr| / stderr vs direct |")
@@ -177,10 +177,9 @@ def compare(args) -> int:
                 o[k] += r[k]
             o.update({k: r[k] for k in ("status", "iterations", "params", "stderr")})
             print(f"# {name}: {min(r['times']):.3f} s", file=sys.stderr, flush=True)
-    load = os.getloadavg()
     print(f"{args.res}² plastic from the far start, coarse to fine, fitter.fit compiled; "
           f"{args.rounds} fresh processes x {args.repeat} fits per tree, interleaved; "
-          f"{os.cpu_count()} CPUs, load average {load[0]:.1f} / {load[1]:.1f}\n")
+          f"{host()}\n")
     names = [n for n, _ in trees]
     keys = sorted({k for n in names for s in out[n]["stages"] for k in s},
                   key=lambda k: -max(s.get(k, 0.0) for s in out[names[-1]]["stages"]))

@@ -30,6 +30,7 @@ import sys
 import time
 
 import _trees
+from _machine import host
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CASES = ("plastic 256^2", "dielectric 128^2")
@@ -120,9 +121,8 @@ def main(argv=None) -> int:
     trees = _trees.trees(args.before, "fitter-compile-")
     records = _trees.interleaved(trees, args.cases, args.repeat,
                                  lambda tree, case, _: run(tree, case))
-    load = os.getloadavg()
     print(f"First-run compile, {args.repeat} fresh processes per (tree, case), interleaved; "
-          f"least times; {os.cpu_count()} CPUs, load average {load[0]:.1f}\n")
+          f"least times; {host()}\n")
     print("| case | tree | compile (s) | XLA (s) | first run (s) | compiled (s) | status |")
     print("|---|---|---|---|---|---|---|")
     best = {}

@@ -32,6 +32,7 @@ import sys
 import time
 
 import _trees
+from _machine import host
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIG = "configs/dielectric.toml"
@@ -122,9 +123,8 @@ def main(argv=None) -> int:
         trees, args.cases, args.repeat,
         lambda tree, case, rnd: run(tree, case, args.fits, args.mitsuba and rnd == 0))
 
-    load = os.getloadavg()
     print(f"Dielectric fits at 128^2, 4x4 samples; {args.repeat} fresh processes per (tree, case), "
-          f"interleaved; least times; {os.cpu_count()} CPUs, load average {load[0]:.1f}\n")
+          f"interleaved; least times; {host()}\n")
     print("| case | tree | first run (s) | compiled (s) | steps | status | max error eta "
           "| max error attenuation | error / stderr | Mitsuba RMSE |")
     print("|---|---|---|---|---|---|---|---|---|---|")

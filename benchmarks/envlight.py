@@ -38,6 +38,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _trees  # noqa: E402
+from _machine import host  # noqa: E402
 
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), os.pardir)
 sys.path.insert(0, ROOT)
@@ -238,7 +239,8 @@ def cost(a):
                                "rss_gb")
                               if k in best[key]})
                 best[key] = d
-    print("\n| tree | scene | first fit s | its CPU s | of it compile s | compiled fit s | steps "
+    print(f"\n{host()} (1 / 5 min) at the end\n")
+    print("| tree | scene | first fit s | its CPU s | of it compile s | compiled fit s | steps "
           "| render ms | Jacobian ms | peak RSS GB | status |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for (name, scene_of), d in best.items():

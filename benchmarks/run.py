@@ -161,18 +161,11 @@ def final_err(trace):
 
 
 def machine() -> str:
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
+    from _machine import cpu
+
     import jax
 
-    return (f"{cpu}, nproc {os.cpu_count()}, {platform.system()} {platform.release()}, "
+    return (f"{cpu()}, nproc {os.cpu_count()}, {platform.system()} {platform.release()}, "
             f"Python {platform.python_version()}, jax {jax.__version__}")
 
 
