@@ -10,6 +10,7 @@ import jax
 import numpy as np
 import pytest
 
+import fitter
 from fitter import compilation_cache, skystencil
 
 
@@ -159,3 +160,19 @@ def test_warm_makes_the_tables_build_geometry_asks_for(monkeypatch):
     monkeypatch.setattr(skystencil, "_tables", lambda *a: pytest.fail("made again"))
     skystencil.node_geometry(det.nodes, tuple(det.sub), det.rings)
     skystencil._cached_tables(det.rings)
+
+
+def test_a_fit_given_a_lobe_string_warms_the_tables_too(no_cache_folder, monkeypatch):
+    """``fitter.fit`` parses the material before ``import_ahead`` reads it: a
+    "lambert" string under a sky gets the tables made on the import thread, as a
+    ``Material`` does."""
+    from fitter import Environment, Scene
+
+    made = []
+    warm = skystencil.warm
+    monkeypatch.setattr(skystencil, "warm", lambda: made.append(1) or warm())
+    scene = Scene(width=16, height=16,
+                  environment=Environment("constant", radiance=(1.0, 1.0, 1.0)))
+    target = np.asarray(fitter.render({"lambert.rho_d": [0.5, 0.4, 0.3]}, scene, "lambert"))
+    fitter.fit(target, scene, "lambert")
+    assert made == [1]

@@ -22,6 +22,7 @@ from .. import envlight
 from ..blasthreads import one_blas_thread
 from ..hugepages import advice_off
 from ..limits import check_fit
+from ..material import Material
 from ..scene import Scene
 from . import _args, _coarse, _discretisation, _edge, _profile
 from ._ahead import import_ahead, settled
@@ -111,6 +112,9 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     """
     t_start = time.perf_counter()
     scene = _args.scene_of(scene)
+    # Parsed here, as ``Problem.make`` would: a lobe string or list gets the sky tables
+    # made ahead too (``import_ahead`` reads a Material only).
+    material = material if isinstance(material, Material) else Material.make(material)
     import_ahead(scene, material)
     n_starts = _args.option("n_starts", n_starts)
     identifiability = _args.option("identifiability", identifiability)
