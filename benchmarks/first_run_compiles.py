@@ -76,6 +76,7 @@ def main(argv=None) -> int:
     from fitter.cases import CASES
     from fitter.imageio import read_image
 
+    # The case as envlight.py's first fit loads it (its figures are the ones reported).
     spec = CASES[args.case]
     base = os.path.join(ROOT, "data_synthetic", args.case)
     scene = serialize.scene_from_dict(spec["scene"], args.case, base_dir=base)
