@@ -2,10 +2,10 @@
 
 A request over a limit is a ``ResourceError`` (exit 2 in the CLI) that states
 the estimate and how to reduce it, instead of a process the kernel kills
-without a word. The memory model is measured (``fitter fit`` peak RSS,
-lambert + torrance_sparrow, 2 point lights, on the 2-core CI machine):
-256^2 x 4^2 samples 0.9 GB, 512^2 x 4^2 1.8 GB, 1024^2 x 4^2 6.0 GB, i.e.
-about ``BASE_BYTES`` plus ``BYTES_PER_SAMPLE`` per film sample.
+without a word. The memory model (``MEMORY_MODEL``) is measured: peak RSS of
+one fit or render in a fresh process, per pixel and per film sample, with and
+without an environment lighting the opaque lobes
+(``benchmarks/memory_model.py``).
 """
 
 from __future__ import annotations
@@ -20,14 +20,22 @@ MAX_STARTS = 1024
 MAX_SUPERSAMPLING = 16
 #: Most samples per pixel of a Mitsuba validation or synth render.
 MAX_SPP = 1 << 16
-#: Fit memory: fixed part and bytes per film sample (see the module docstring).
-BASE_BYTES = 0.6e9
-BYTES_PER_SAMPLE = 350.0
-#: Extra fit memory per pixel when an environment lights opaque lobes (its
-#: sky table, ``fitter.envlight``): peak RSS 1.6 GB at 128^2 (env_plastic, CLI
-#: fit with the discretisation term), ~55 kB a pixel above the rest; twice that
-#: for a margin.
-ENV_BYTES_PER_PIXEL = 1.1e5
+#: Peak memory of one job, (fixed bytes, bytes per pixel, bytes per film sample),
+#: by (task, whether an environment lights opaque lobes). Measured
+#: (``benchmarks/memory_model.py``, 2026-12-05: lambert + torrance_sparrow, the
+#: shipped "plastic" (2 point lights) and "env_plastic" scenes, fresh processes,
+#: repeated runs differing by up to 8 %) and chosen so that every measured job
+#: is 8-40 % below its estimate. A fit: point-lit 256^2 x 4^2 samples 1.05 GB,
+#: 1024^2 x 4^2 5.4-6.0 GB; env-lit 128^2 x 4^2 1.7 GB, 128^2 x 8^2 3.4 GB,
+#: 512^2 x 4^2 11.8 GB (the sky table per env sample, the sun's cells per
+#: highlight sample and the finer model of the stated errors). A render:
+#: point-lit 1024^2 x 4^2 5.3 GB, env-lit 512^2 x 4^2 8.6 GB.
+MEMORY_MODEL = {
+    ("fit", False): (0.8e9, 0.0, 350.0),
+    ("fit", True): (0.9e9, 1.3e4, 2650.0),
+    ("render", False): (0.3e9, 0.0, 330.0),
+    ("render", True): (0.55e9, 8e3, 1600.0),
+}
 #: Share of the machine's available memory a fit may plan to use.
 MEMORY_SHARE = 0.8
 
@@ -36,11 +44,13 @@ class ResourceError(FitterError):
     """A request larger than this machine or the documented limits allow."""
 
 
-def fit_bytes(width: int, height: int, supersampling: int, env_lit: bool = False) -> float:
-    """Estimated peak memory (bytes) of a fit at this film size (``env_lit``: an
-    environment lights opaque lobes)."""
-    return (BASE_BYTES + BYTES_PER_SAMPLE * width * height * supersampling ** 2
-            + (ENV_BYTES_PER_PIXEL * width * height if env_lit else 0.0))
+def job_bytes(task: str, width: int, height: int, supersampling: int,
+              env_lit: bool = False) -> float:
+    """Estimated peak memory (bytes) of a ``task`` ("fit" or "render") at this
+    film size (``env_lit``: an environment lights opaque lobes); ``MEMORY_MODEL``."""
+    fixed, per_pixel, per_sample = MEMORY_MODEL[(task, bool(env_lit))]
+    pixels = float(width) * float(height)
+    return fixed + per_pixel * pixels + per_sample * pixels * supersampling ** 2
 
 
 def available_bytes() -> float | None:
@@ -68,15 +78,24 @@ def check_fit(width: int, height: int, supersampling: int, n_starts: int,
     if n_starts > MAX_STARTS:
         raise ResourceError(f"{at}fit.n_starts = {n_starts} is over the limit of {MAX_STARTS} "
                             "starts; use fewer starts")
+    check_render(width, height, supersampling, where, env_lit, task="fit")
+
+
+def check_render(width: int, height: int, supersampling: int, where: str = "",
+                 env_lit: bool = False, task: str = "render") -> None:
+    """Raise ``ResourceError`` if a render (or another ``task`` of
+    ``MEMORY_MODEL``) of this size cannot run here: over ``MAX_SUPERSAMPLING``,
+    or ``job_bytes`` over ``MEMORY_SHARE`` of the memory available now."""
+    at = f"{where}: " if where else ""
     if supersampling > MAX_SUPERSAMPLING:
         raise ResourceError(f"{at}scene.supersampling = {supersampling} is over the limit of "
                             f"{MAX_SUPERSAMPLING} (that is {MAX_SUPERSAMPLING ** 2} samples a "
                             "pixel); 4 is enough for smooth lobes")
-    need = fit_bytes(width, height, supersampling, env_lit)
+    need = job_bytes(task, width, height, supersampling, env_lit)
     have = available_bytes()
     if have is not None and need > MEMORY_SHARE * have:
         raise ResourceError(
-            f"{at}a {width}x{height} fit at scene.supersampling = {supersampling}"
+            f"{at}a {width}x{height} {task} at scene.supersampling = {supersampling}"
             f"{' lit by its environment' if env_lit else ''} needs about "
             f"{need / 1e9:.1f} GB of memory and this machine has {have / 1e9:.1f} GB "
             "available; lower scene.supersampling or the image size (or crop the image to "

@@ -1,0 +1,112 @@
+"""The memory model of ``fitter.limits`` against measurement: peak RSS of one
+``fitter.render`` or ``fitter.fit`` per fresh process, for the shipped scenes
+"plastic" (lambert + torrance_sparrow, 2 point lights), "env_plastic" (the
+same lobes lit by the shipped probe), "dielectric" and "mirror" (specular
+lobes under an envmap: the point-lit model), at several film sizes and
+sub-pixel samples, beside ``limits.job_bytes``' estimate for it. ``MEMORY_MODEL`` is
+chosen so that every row's estimate / measured is >= 1.
+
+    python benchmarks/memory_model.py                      # the rows of the model's docs
+    python benchmarks/memory_model.py --rows env_plastic:fit:128:4 plastic:render:1024:4
+
+A fit's target is rendered first in a process of its own (the JAX model at
+the truth plus Gaussian noise of sigma 2e-3), so the fit's peak is its own;
+the persistent compilation cache is off (a first run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+
+from _machine import host
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+#: case:task:resolution:supersampling of a default run.
+ROWS = ("plastic:render:256:4", "plastic:render:1024:4", "plastic:fit:256:4",
+        "plastic:fit:1024:4", "env_plastic:render:128:4", "env_plastic:render:512:4",
+        "env_plastic:fit:128:2", "env_plastic:fit:128:4", "env_plastic:fit:128:8",
+        "env_plastic:fit:256:2", "env_plastic:fit:256:4", "env_plastic:fit:512:4",
+        "dielectric:render:512:4", "dielectric:fit:256:4", "mirror:render:1024:4",
+        "mirror:fit:512:4")
+
+
+def worker(case: str, task: str, res: int, k: int, folder: str) -> dict:
+    import resource
+    import time
+
+    import numpy as np
+
+    import fitter
+    from fitter import serialize
+    from fitter.cases import CASES
+
+    spec = CASES[case]
+    base = os.path.join(ROOT, "data_synthetic", case)
+    scene = serialize.scene_from_dict(spec["scene"], case, base_dir=base)
+    scene = scene.replace(width=res, height=res, supersampling=k)
+    mat, truth, _, fixed = serialize.material_from_dict(spec["material"], case)
+    path = os.path.join(folder, f"{case}-{res}-{k}.npy")
+    t0 = time.perf_counter()
+    if task == "render" or not os.path.exists(path):
+        img = np.asarray(fitter.render(mat.full_params(truth), scene, mat, base_dir=base))
+        np.save(path, img + np.random.default_rng(0).normal(0.0, 2e-3, img.shape))
+    else:
+        fitter.fit(np.load(path), scene, mat, fixed=fixed or None, base_dir=base)
+    return {"seconds": time.perf_counter() - t0,
+            "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0}
+
+
+def run(row: str, folder: str) -> dict:
+    env = {**os.environ, "FITTER_CACHE_DIR": "", "PYTHONPATH": ROOT}
+    case, task, res, k = row.split(":")
+    steps = ([] if task == "render" or os.path.exists(
+        os.path.join(folder, f"{case}-{res}-{k}.npy")) else ["render"]) + [task]
+    for step in steps:
+        proc = subprocess.run([sys.executable, __file__, "--worker", case, step, res, k, folder],
+                              capture_output=True, text=True, env=env)
+        if proc.returncode:
+            raise SystemExit(f"{row}: {proc.stderr.strip().splitlines()[-1:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--rows", nargs="+", default=list(ROWS), help="case:task:resolution:k")
+    ap.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        case, task, res, k, folder = args.worker
+        print(json.dumps(worker(case, task, int(res), int(k), folder)))
+        return 0
+    sys.path.insert(0, ROOT)
+    from fitter import limits
+    from fitter.cases import CASES
+    from fitter.envlight import lit_by_environment
+    from fitter.serialize import material_from_dict, scene_from_dict
+
+    print(f"Peak RSS against fitter.limits' estimate; {host()}\n")
+    print("| scene | task | film | samples | seconds | peak RSS GB | estimate GB | "
+          "estimate / peak |")
+    print("|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as folder:
+        for row in args.rows:
+            case, task, res, k = row.split(":")
+            scene = scene_from_dict(CASES[case]["scene"], case,
+                                    base_dir=os.path.join(ROOT, "data_synthetic", case))
+            lit = lit_by_environment(scene, material_from_dict(CASES[case]["material"], case)[0])
+            est = limits.job_bytes(task, int(res), int(res), int(k), lit)
+            got = run(row, folder)
+            print(f"| {case} | {task} | {res}² | {k}x{k} | {got['seconds']:.1f} | "
+                  f"{got['peak'] / 1e9:.2f} | {est / 1e9:.2f} | {est / got['peak']:.2f} |",
+                  flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
