@@ -174,6 +174,16 @@ def preflight(job: Job) -> None:
         limits.check_spp(job.fit.validate_spp, "fit.validate_spp", where=job.path)
 
 
+def fit_memory(job: Job) -> float:
+    """Estimated peak memory (bytes) of ``job``'s fit (``limits.job_bytes``)."""
+    from . import limits
+    from .envlight import lit_by_environment
+
+    s = job.scene
+    return limits.job_bytes("fit", s.width, s.height, s.supersampling,
+                            lit_by_environment(s, job.material))
+
+
 def fit_job(job: Job, target: np.ndarray, saturated: np.ndarray,
             progress: Callable[[str], None] | None = None) -> FitResult:
     """The fit engine on ``job``'s scene, material and ``[fit]`` options;

@@ -231,3 +231,48 @@ def test_batch_help_and_command_line_errors_answer_without_dask(tmp_path):
     assert proc.stdout.splitlines()[-1] == "[0, 2, 2] False False", proc.stderr
     errors = [ln for ln in proc.stderr.splitlines() if ln.startswith("fitter: error:")]
     assert len(errors) == 2 and "--workers 0" in errors[0] and "no config matches" in errors[1]
+
+
+def _entries(gigabytes):
+    from fitter.batch._jobs import Entry
+
+    return [Entry(i, f"job{i}.toml", memory=g * 1e9) for i, g in enumerate(gigabytes)]
+
+
+def test_the_embedded_cluster_runs_only_as_many_jobs_side_by_side_as_memory_holds(
+        monkeypatch):
+    # Dask's default worker limit is the machine's memory over its cores: on 16 cores and
+    # 32 GB a 256^2 env-lit fit (4.5 GB estimated by fitter.limits) was stopped on every
+    # worker it tried. 25.6 GB usable (80 % of 32) holds 5 such jobs: 5 workers of 5.1 GB.
+    from distributed.system import MEMORY_LIMIT
+
+    from fitter import limits
+    from fitter.batch._engine import _local_size
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 16)
+    monkeypatch.setattr(limits, "available_bytes", lambda: 32e9)
+    n, limit = _local_size(None, _entries([4.5] * 8 + [1.0]))
+    assert n == 5 and limit == max(int(25.6e9 / 5), int(MEMORY_LIMIT / 16))
+    assert limit >= 4.5e9  # every job's estimate fits its worker
+    assert _local_size(None, _entries([1.0] * 3))[0] == 3  # small jobs: one per job
+    assert _local_size(3, _entries([4.5] * 8))[0] == 3
+    with pytest.raises(BatchError, match=r"--workers 8: 8 jobs side by side need about 36\.0 "
+                                         r"GB .* use --workers 5 or fewer"):
+        _local_size(8, _entries([4.5] * 8))
+    n, limit = _local_size(None, _entries([30.0]))  # over the share: one at a time
+    assert n == 1 and limit == max(int(25.6e9), int(MEMORY_LIMIT / 16))
+
+
+def test_a_job_no_worker_of_an_existing_cluster_can_hold_is_an_error_row(cases, tmp_path):
+    # An external cluster's workers keep their own memory limits: a job estimated over
+    # the largest is refused before it runs (Dask would stop it on each worker it tried).
+    paths, _ = cases
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, host="127.0.0.1",
+                                  dashboard_address=None, silence_logs=50,
+                                  memory_limit="300 MB") as cluster:
+        rows = run_batch(paths[:1], str(tmp_path / "batch"),
+                         scheduler=cluster.scheduler_address)
+    assert rows[0]["status"] == "error"
+    assert ("needs about 0.8 GB" in rows[0]["error"] and "memory limit of 0.3 GB"
+            in rows[0]["error"] and paths[0] in rows[0]["error"]), rows[0]["error"]
+    assert not (tmp_path / "batch" / "case0").exists()

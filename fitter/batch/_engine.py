@@ -42,7 +42,8 @@ def run_batch(jobs: Iterable[Any], out: str | None = None, *, scheduler: str | N
             target are not run again. None: nothing is written.
         scheduler: address of an existing Dask scheduler (``tcp://host:port``);
             None starts a ``LocalCluster`` of ``workers`` processes.
-        workers: processes of the embedded cluster (default: CPU cores).
+        workers: processes of the embedded cluster (default: CPU cores, as
+            many as the memory holds side by side, ``_local_size``).
         validate: override every job's ``fit.validate`` (None: keep it).
         progress: show a progress bar on stderr.
 
@@ -53,7 +54,8 @@ def run_batch(jobs: Iterable[Any], out: str | None = None, *, scheduler: str | N
         ``error``. A job that could not run has status ``"error"`` and a message.
 
     Raises:
-        BatchError: ``out`` is not a usable folder, the scheduler does not answer.
+        BatchError: ``out`` is not a usable folder, the scheduler does not answer,
+            ``workers`` jobs side by side would not fit in the memory.
     """
     if workers is not None and workers < 1:
         raise BatchError(f"workers = {workers}: expected an integer >= 1")
@@ -74,7 +76,9 @@ def run_batch(jobs: Iterable[Any], out: str | None = None, *, scheduler: str | N
             todo.append(e)
     if todo:
         try:
-            with _client(scheduler, workers, len(todo)) as client:
+            with _client(scheduler, workers, todo) as client:
+                if scheduler is not None:
+                    todo = _held_by_workers(client, todo, rows)
                 for e, row in _run(client, todo, root, progress):
                     rows[e.index] = row
         finally:  # after the embedded cluster's processes ended (Ctrl-C, a crash)
@@ -120,8 +124,9 @@ def _clean(root: str, entries: Sequence[Entry]) -> None:
 
 
 @contextlib.contextmanager
-def _client(scheduler: str | None, workers: int | None, n_jobs: int):
-    """A ``distributed.Client`` on ``scheduler`` or on an embedded LocalCluster."""
+def _client(scheduler: str | None, workers: int | None, todo: Sequence[Entry]):
+    """A ``distributed.Client`` on ``scheduler`` or on an embedded LocalCluster
+    (``_local_size``)."""
     from distributed import Client
 
     if scheduler is not None:
@@ -145,12 +150,67 @@ def _client(scheduler: str | None, workers: int | None, n_jobs: int):
         return
     from distributed import LocalCluster
 
-    n = min(workers or os.cpu_count() or 1, n_jobs)
+    n, memory_limit = _local_size(workers, todo)
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                       host="127.0.0.1", dashboard_address=None, env=_worker_env(n),
-                      silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
+                      memory_limit=memory_limit, silence_logs=logging.CRITICAL
+                      ) as cluster, Client(cluster) as client:
         client.register_plugin(_ignore_interrupt(), name="fitter-ignore-sigint")
         yield client
+
+
+def _local_size(workers: int | None, todo: Sequence[Entry]) -> tuple[int, int | str]:
+    """(worker processes, each one's memory limit) of the embedded cluster: one
+    per core (or ``workers``) and job, fewer where the largest job's estimated
+    memory (``Entry.memory``) times the workers is over ``limits.MEMORY_SHARE``
+    of the memory available; that share split between them, or Dask's default
+    if larger. That default, the machine's memory over its cores, alone
+    stopped any job over it (a 256^2 env-lit fit, 4.2 GB, on a 16-core 32 GB
+    machine), four times, before its row said so. ``workers`` too many for the
+    memory is a ``BatchError``."""
+    from .. import limits
+
+    n = min(workers or os.cpu_count() or 1, len(todo))
+    need = max((e.memory for e in todo), default=0.0)
+    have = limits.available_bytes()
+    if not have:
+        return n, "auto"
+    usable = limits.MEMORY_SHARE * have
+    fits = max(1, int(usable // need)) if need > 0 else n
+    if workers is not None and n > fits:
+        raise BatchError(f"--workers {workers}: {n} jobs side by side need about "
+                         f"{n * need / 1e9:.1f} GB ({need / 1e9:.1f} GB each, estimated) and "
+                         f"this machine has {have / 1e9:.1f} GB available; use --workers "
+                         f"{fits} or fewer, or leave it out")
+    n = min(n, fits)
+    from distributed.system import MEMORY_LIMIT
+
+    return n, max(int(usable / n), int(MEMORY_LIMIT / (os.cpu_count() or 1)))  # not below Dask's
+
+
+def _held_by_workers(client, todo: Sequence[Entry], rows: list) -> list[Entry]:
+    """The entries whose estimated memory some worker of an existing cluster
+    holds (its ``memory_limit``); the others get an error row before any runs
+    (Dask would stop each on every worker it tried). All of them where a
+    worker has no limit or the limits cannot be read."""
+    try:
+        info = list(client.scheduler_info()["workers"].values())
+        most = max(w["memory_limit"] for w in info) if info else 0
+        if not all(w["memory_limit"] for w in info):
+            return list(todo)
+    except Exception:  # noqa: BLE001 (an older or newer scheduler: let Dask decide)
+        return list(todo)
+    keep = []
+    for e in todo:
+        if most and e.memory > most:
+            rows[e.index] = error_row(e, (
+                f"{e.config}: the fit needs about {e.memory / 1e9:.1f} GB of memory "
+                f"(estimated) and the cluster's largest worker has a memory limit of "
+                f"{most / 1e9:.1f} GB; start workers with a larger --memory-limit, or lower "
+                "scene.supersampling or the image size"))
+        else:
+            keep.append(e)
+    return keep
 
 
 #: XLA's CPU thread pool off: with one worker process per core, each using every core

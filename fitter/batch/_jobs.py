@@ -41,6 +41,7 @@ class Entry:
         name: output folder name under the batch folder.
         key: resume key (sha256 hex) of the job and its target.
         error: why the job cannot run (one sentence), or None.
+        memory: the fit's estimated peak memory, bytes (``limits.job_bytes``).
     """
 
     index: int
@@ -50,6 +51,7 @@ class Entry:
     name: str = ""
     key: str = ""
     error: str | None = None
+    memory: float = 0.0
 
 
 def expand_configs(args: Iterable[str]) -> list[str]:
@@ -116,10 +118,11 @@ def _entry(index: int, item: Any, validate: bool | None) -> Entry:
             job = job.replace(fit=job.fit.replace(target=target))  # config.toml records it
         else:
             target = np.asarray(target, dtype=np.float64)
-        from ..pipeline import preflight
+        from ..pipeline import fit_memory, preflight
 
         preflight(job)
-        return Entry(index, label, job=job, target=target, key=resume_key(job, target))
+        return Entry(index, label, job=job, target=target, key=resume_key(job, target),
+                     memory=fit_memory(job))
     except (FitterError, OSError) as exc:
         return Entry(index, label, error=_one_line(exc))
 
