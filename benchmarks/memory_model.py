@@ -8,6 +8,11 @@ chosen so that every row's estimate / measured is >= 1.
 
     python benchmarks/memory_model.py                      # the rows of the model's docs
     python benchmarks/memory_model.py --rows env_plastic:fit:128:4 plastic:render:1024:4
+    python benchmarks/memory_model.py --many 5             # 5 scenes fitted in one process
+
+``--many N``: N different env_plastic scenes (256^2, the sphere's radius
+1.0, 0.98, ...) rendered and fitted one after the other in one process, its
+RSS after each and its peak: what the scene caches keep (``fitter._keep``).
 
 A fit's target is rendered first in a process of its own (the JAX model at
 the truth plus Gaussian noise of sigma 2e-3), so the fit's peak is its own;
@@ -62,6 +67,38 @@ def worker(case: str, task: str, res: int, k: int, folder: str) -> dict:
             "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0}
 
 
+def many(n: int, res: int = 256) -> None:
+    import gc
+    import resource
+
+    import numpy as np
+
+    import fitter
+    from fitter import serialize
+    from fitter.cases import CASES
+    from fitter.scene import Sphere
+
+    case = "env_plastic"
+    base = os.path.join(ROOT, "data_synthetic", case)
+    scene = serialize.scene_from_dict(CASES[case]["scene"], case, base_dir=base)
+    scene = scene.replace(width=res, height=res)
+    mat, truth, _, fixed = serialize.material_from_dict(CASES[case]["material"], case)
+    print(f"{n} env_plastic scenes at {res}² in one process; {host()}\n")
+    print("| scene | sphere radius | status | RSS after GB | peak RSS so far GB |")
+    print("|---|---|---|---|---|")
+    for i in range(n):
+        s = scene.replace(sphere=Sphere(center=scene.sphere.center, radius=1.0 - 0.02 * i))
+        img = np.asarray(fitter.render(mat.full_params(truth), s, mat, base_dir=base))
+        img = img + np.random.default_rng(i).normal(0.0, 2e-3, img.shape)
+        r = fitter.fit(img, s, mat, fixed=fixed or None, base_dir=base)
+        gc.collect()
+        with open("/proc/self/statm") as fh:
+            rss = int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0
+        print(f"| {i} | {1.0 - 0.02 * i:.2f} | {r.status} | {rss / 1e9:.2f} | {peak / 1e9:.2f} |",
+              flush=True)
+
+
 def run(row: str, folder: str) -> dict:
     env = {**os.environ, "FITTER_CACHE_DIR": "", "PYTHONPATH": ROOT}
     case, task, res, k = row.split(":")
@@ -78,8 +115,14 @@ def run(row: str, folder: str) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rows", nargs="+", default=list(ROWS), help="case:task:resolution:k")
+    ap.add_argument("--many", type=int, help="fit this many scenes in one process")
     ap.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.many:
+        os.environ["FITTER_CACHE_DIR"] = ""
+        sys.path.insert(0, ROOT)
+        many(args.many)
+        return 0
     if args.worker:
         case, task, res, k, folder = args.worker
         print(json.dumps(worker(case, task, int(res), int(k), folder)))

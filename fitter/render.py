@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import checks
+from ._keep import recent
 from ._math import to_device
 from ._modules import make_callable
 from .bsdf.base import Cosines, SurfaceHit
@@ -297,6 +298,12 @@ def exposed_background(material: Material, params, background_image):
     return background_image * params[EXPOSURE_KEY]
 
 
+#: Scenes' arrays kept for later calls beyond the most recent scene's
+#: (``fitter._keep.recent``): small scenes stay for refits, a large one only
+#: while it is the latest (one 256^2 env-lit scene: ~2 GB).
+KEEP_BYTES = 2**29
+
+
 class Renderer:
     """A scene and material prepared for fast repeated, differentiable renders.
 
@@ -354,7 +361,7 @@ def _prepare_key(scene: Scene, base_dir):
     return scene.replace(environment=dataclasses.replace(env, file=path)), None
 
 
-@functools.lru_cache(maxsize=8)
+@recent(max_items=8, max_bytes=KEEP_BYTES)
 @advice_off  # large short-lived NumPy arrays (``fitter.hugepages``)
 @one_blas_thread
 def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
@@ -377,7 +384,7 @@ def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
     return jax.tree_util.tree_map(cast, geo), jax.tree_util.tree_map(cast, env64), sphere
 
 
-@functools.lru_cache(maxsize=16)
+@recent(max_items=16, max_bytes=KEEP_BYTES)
 def cached_renderer(scene: Scene, material: Material, dtype, base_dir):
     """The ``Renderer`` of a scene and material, shared by every call with equal arguments."""
     return Renderer(scene, material, dtype, base_dir)

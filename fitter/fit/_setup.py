@@ -4,7 +4,6 @@ parameters, checked and fixed once, before any solve."""
 from __future__ import annotations
 
 import dataclasses
-import functools
 import os
 from typing import Any
 
@@ -12,9 +11,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._keep import recent
 from .._math import to_device
 from ..material import EXPOSURE_KEY, Material
-from ..render import Renderer, cached_renderer
+from ..render import KEEP_BYTES, Renderer, cached_renderer
 from .. import checks
 from . import _args
 from ._args import FitError as FitError
@@ -65,7 +65,7 @@ def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
     return rows, int(chosen.sum() - rows.size), flat
 
 
-@functools.lru_cache(maxsize=4)
+@recent(max_items=4, max_bytes=KEEP_BYTES)
 def _fitted_geometry(renderer: Renderer, rows: bytes):
     """The renderer's geometry of the fitted ``rows`` (int64 bytes), on the device.
 

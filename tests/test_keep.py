@@ -1,0 +1,74 @@
+"""Scene caches bounded by bytes (``fitter._keep``): fits of many scenes in one
+process do not pile up their arrays (five 256^2 env-lit scenes held 12.5 GB
+with ``functools.lru_cache(8)``; benchmarks/memory_model.py --many)."""
+
+from __future__ import annotations
+
+import importlib
+
+import numpy as np
+
+import fitter
+from fitter._keep import nbytes, recent
+from fitter.fit import _setup
+
+render_mod = importlib.import_module("fitter.render")
+
+
+def _cache(max_bytes=100):
+    made = []
+
+    @recent(max_items=4, max_bytes=max_bytes)
+    def make(name, size):
+        made.append(name)
+        return {"a": np.zeros(size, np.uint8), "b": (np.zeros(size, np.uint8),)}
+
+    return make, made
+
+
+def test_nbytes_counts_every_array_once():
+    a = np.zeros(10)
+    assert nbytes({"x": a, "y": [a, np.zeros(3, np.float32)], "z": "text"}) == 80 + 12
+
+
+def test_the_newest_value_stays_and_older_ones_only_within_the_bytes():
+    make, made = _cache()
+    make("A", 500)
+    make("Ac", 5)  # small: A, the one before it, stays (a fit's coarse problem)
+    assert make.cache_info() == (2, 1010)
+    make("A", 500), make("Ac", 5)
+    assert made == ["A", "Ac"]  # both were hits
+    make("B", 500)  # large: A went before B was made, Ac after
+    assert make.cache_info() == (1, 1000)
+    make("Bc", 5)
+    assert make.cache_info() == (2, 1010) and made == ["A", "Ac", "B", "Bc"]
+    for i in range(6):  # small ones: the count bounds them
+        make(f"s{i}", 1)
+    assert make.cache_info() == (4, 8)
+    make.cache_clear()
+    assert make.cache_info() == (0, 0)
+
+
+def test_rendering_many_scenes_keeps_only_the_newest_large_one(monkeypatch):
+    # With a bound of one byte every scene is large: after three scenes only the
+    # last one's arrays are kept (with lru_cache all three were).
+    for f in (render_mod._prepare, render_mod.cached_renderer, _setup._fitted_geometry):
+        monkeypatch.setattr(f, "max_bytes", 1)
+        f.cache_clear()
+    light = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),)
+    images = [fitter.render({"lambert.rho_d": 0.5},
+                            fitter.Scene(width=w, height=w, supersampling=1, lights=light))
+              for w in (8, 10, 12)]
+    assert [np.shape(i)[0] for i in images] == [8, 10, 12]
+    assert render_mod._prepare.cache_info()[0] == 1
+    assert render_mod.cached_renderer.cache_info()[0] == 1
+    built = []
+    build = render_mod.build_geometry
+    monkeypatch.setattr(render_mod, "build_geometry", lambda *a, **k: built.append(1)
+                        or build(*a, **k))
+    scene = fitter.Scene(width=12, height=12, supersampling=1, lights=light)
+    again = fitter.render({"lambert.rho_d": 0.5}, scene)  # the newest: reused
+    np.testing.assert_array_equal(np.asarray(again), np.asarray(images[-1]))
+    assert not built and render_mod._prepare.cache_info()[0] == 1
+    fitter.render({"lambert.rho_d": 0.5}, scene.replace(width=8, height=8))  # dropped: made
+    assert built == [1]
