@@ -182,3 +182,19 @@ def test_a_compile_started_behind_waits_for_those_started_before(monkeypatch):
     earlier.join()
     behind[0].join()
     assert order == ["earlier", "behind"]
+
+
+def test_a_process_keeps_only_the_most_recently_used_executables(monkeypatch):
+    # A batch worker fitting images of ever new shapes kept every executable it
+    # compiled; now the KEEP_COMPILED most recently used (a hit counts as a use).
+    monkeypatch.setattr(_compile, "_COMPILED", {})
+    monkeypatch.setattr(_compile, "_PENDING", {})
+    monkeypatch.setattr(_compile, "KEEP_COMPILED", 3)
+    monkeypatch.setattr(_compile, "_key", lambda kind, spec, args, once, static: kind)
+    built = []
+    monkeypatch.setattr(_compile, "_build", lambda kind, *a: built.append(kind) or kind)
+    for kind in ("a", "b", "c", "a", "d"):  # "a" used again: "b" is the oldest
+        assert _compile.compiled(kind, None, ())[0] == kind
+    assert list(_compile._COMPILED) == ["c", "a", "d"] and built == ["a", "b", "c", "d"]
+    _compile.compiled("b", None, ())
+    assert built[-1] == "b" and "c" not in _compile._COMPILED

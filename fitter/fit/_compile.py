@@ -45,6 +45,18 @@ SPECULAR_SOLVE_XLA_OPTIONS = {**SOLVE_XLA_OPTIONS, "xla_backend_optimization_lev
 ONCE_XLA_OPTIONS = {**FAST_XLA_OPTIONS, "xla_backend_optimization_level": 0}
 
 _COMPILED: dict = {}
+#: ``_COMPILED`` keeps the most recently used this many: a process fitting images of
+#: ever new shapes (a batch worker) kept every executable it compiled.
+KEEP_COMPILED = 32
+
+
+def _hold(key, exe) -> None:
+    """``exe`` under ``key`` in ``_COMPILED``, the least recently used beyond
+    ``KEEP_COMPILED`` dropped."""
+    _COMPILED.pop(key, None)
+    _COMPILED[key] = exe
+    while len(_COMPILED) > KEEP_COMPILED:
+        _COMPILED.pop(next(iter(_COMPILED)))
 
 
 def jacobian_r(spec: Spec, z, data):
@@ -284,8 +296,8 @@ def wait() -> None:
     for key, (thread, box) in list(_PENDING.items()):  # (or fits on other threads)
         thread.join()
         _PENDING.pop(key, None)
-        if box:
-            _COMPILED.setdefault(key, box[0])
+        if box and key not in _COMPILED:
+            _hold(key, box[0])
 
 
 def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
@@ -300,14 +312,16 @@ def compiled(kind: str, spec: Spec, args, once: bool = False, **static):
     """
     key = _key(kind, spec, args, once, static)
     if key in _COMPILED:
-        return _COMPILED[key], 0.0
+        exe = _COMPILED[key]
+        _hold(key, exe)  # the most recently used
+        return exe, 0.0
     t0 = time.perf_counter()
     ahead = _PENDING.pop(key, None)
     if ahead is not None:
         ahead[0].join()
     exe = ahead[1][0] if ahead is not None and ahead[1] else _build(kind, spec, args, once,
                                                                      static, key)
-    _COMPILED[key] = exe
+    _hold(key, exe)
     return exe, time.perf_counter() - t0
 
 
