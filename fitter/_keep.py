@@ -35,6 +35,17 @@ def nbytes(value, _seen=None) -> int:
     return 0
 
 
+#: Every ``recent`` cache of the process (``release``).
+_ALL: list = []
+
+
+def release() -> None:
+    """Empty every ``recent`` cache: a batch worker does so before a job of
+    another scene, so that one job's arrays are not held beside the next's."""
+    for f in _ALL:
+        f.cache_clear()
+
+
 def recent(max_items: int, max_bytes: float):
     """Decorator: ``functools.lru_cache(maxsize=max_items)`` that also drops the
     least recently used values while the kept values total over ``max_bytes``
@@ -80,6 +91,7 @@ def recent(max_items: int, max_bytes: float):
                 return len(kept), sum(b for _, b in kept.values())
 
         g.cache_clear, g.cache_info, g.max_bytes = cache_clear, cache_info, max_bytes
+        _ALL.append(g)
         return g
 
     return wrap

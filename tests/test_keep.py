@@ -72,3 +72,27 @@ def test_rendering_many_scenes_keeps_only_the_newest_large_one(monkeypatch):
     assert not built and render_mod._prepare.cache_info()[0] == 1
     fitter.render({"lambert.rho_d": 0.5}, scene.replace(width=8, height=8))  # dropped: made
     assert built == [1]
+
+
+def test_a_batch_worker_drops_the_last_scene_before_a_job_of_another(monkeypatch):
+    # One job's arrays held beside the next job's (another scene) could exceed a
+    # worker's memory limit sized for one job; a series of one scene keeps them.
+    from fitter import _keep
+    from fitter.batch import _task
+    from fitter.config import FitOptions, Job
+
+    light = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),)
+    fitter.render({"lambert.rho_d": 0.5}, fitter.Scene(width=8, height=8, lights=light))
+    assert render_mod._prepare.cache_info()[0] >= 1
+    released, real = [], _keep.release
+    monkeypatch.setattr(_keep, "release", lambda: released.append(1) or real())
+    monkeypatch.setattr(_task, "_LAST_SCENE", [None])
+
+    def job(width):
+        return Job(path="j.toml", base_dir="/tmp", scene=fitter.Scene(width=width, lights=light),
+                   material=None, truth={}, init={}, fixed={}, fit=FitOptions())
+
+    for width in (8, 8, 16, 16):
+        _task._scene_of(job(width))
+    assert released == [1]  # once: before the first job of the 16-wide scene
+    assert render_mod._prepare.cache_info()[0] == 0  # every scene cache emptied

@@ -36,6 +36,7 @@ def run_entry(entry: Entry, root: str | None, topic: str = TOPIC) -> dict[str, A
         from ..compilation_cache import enable_compilation_cache
 
         job = entry.job
+        _scene_of(job)
         if isinstance(entry.target, str):
             target, saturated = pipeline.read_target(entry.target, job.scene)
             target_path = entry.target
@@ -61,6 +62,23 @@ def run_entry(entry: Entry, root: str | None, topic: str = TOPIC) -> dict[str, A
     except Exception as exc:  # an internal fault of one job: reported, the batch goes on
         return error_row(entry, f"internal error: {type(exc).__name__}: {_one_line(exc)}",
                          time.perf_counter() - t0)
+
+
+#: The scene (and the folder its files resolve against) of this worker's last job.
+_LAST_SCENE: list = [None]
+
+
+def _scene_of(job) -> None:
+    """Before a job of another scene than the worker's last, drop the last one's
+    arrays (``fitter._keep.release``): kept for a later scene's fit, they were
+    held beside its arrays (two large scenes at once, over a worker's memory
+    limit sized for one job); a series of one scene keeps them."""
+    scene = (job.scene, job.base_dir)
+    if _LAST_SCENE[0] is not None and _LAST_SCENE[0] != scene:
+        from .._keep import release
+
+        release()
+    _LAST_SCENE[0] = scene
 
 
 def _array_target(target: np.ndarray, scene) -> np.ndarray:
