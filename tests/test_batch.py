@@ -276,3 +276,13 @@ def test_a_job_no_worker_of_an_existing_cluster_can_hold_is_an_error_row(cases, 
     assert ("needs about 0.8 GB" in rows[0]["error"] and "memory limit of 0.3 GB"
             in rows[0]["error"] and paths[0] in rows[0]["error"]), rows[0]["error"]
     assert not (tmp_path / "batch" / "case0").exists()
+
+
+def test_the_embedded_cluster_workers_do_not_pause_at_their_memory_limit():
+    # A worker keeps most of a fit's peak RSS after it (the allocator): with Dask's
+    # pause at 80 % of its limit it could stop taking jobs for good.
+    from fitter.batch._engine import _client
+
+    with _client(None, 1, _entries([0.1])) as client:
+        assert list(client.run(lambda: __import__("dask").config.get(
+            "distributed.worker.memory.pause")).values()) == [False]

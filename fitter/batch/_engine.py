@@ -150,11 +150,17 @@ def _client(scheduler: str | None, workers: int | None, todo: Sequence[Entry]):
         return
     from distributed import LocalCluster
 
+    import dask
+
     n, memory_limit = _local_size(workers, todo)
-    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                      host="127.0.0.1", dashboard_address=None, env=_worker_env(n),
-                      memory_limit=memory_limit, silence_logs=logging.CRITICAL
-                      ) as cluster, Client(cluster) as client:
+    # One job at a time a worker: Dask's pause (at 80 % of its limit) would only keep a
+    # worker whose RSS stays up after a job (the allocator keeps 80-93 % of a fit's
+    # peak, measured) from taking the next; all paused, the batch would wait forever.
+    # The nanny's stop at 95 % stays.
+    with dask.config.set({"distributed.worker.memory.pause": False}), LocalCluster(
+            n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+            dashboard_address=None, env=_worker_env(n), memory_limit=memory_limit,
+            silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
         client.register_plugin(_ignore_interrupt(), name="fitter-ignore-sigint")
         yield client
 
