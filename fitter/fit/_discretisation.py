@@ -30,17 +30,18 @@ with the Jacobian already made (``benchmarks/discretisation_cost.py``).
 
 from __future__ import annotations
 
-import functools
 import threading
 
 import jax
 import numpy as np
 
 from .. import envlight
+from .._keep import recent
 from .._math import to_device
 from ..environment import load_environment
 from ..geometry import build_geometry
 from ..material import EXPOSURE_KEY, Material
+from ..render import KEEP_BYTES
 from . import _adequacy, _renders
 from ._problem import user_values
 
@@ -99,7 +100,7 @@ def finer_material(material):
     return Material.make(material.lobes, opts, exposure=material.exposure)
 
 
-@functools.lru_cache(maxsize=8)
+@recent(max_items=8, max_bytes=KEEP_BYTES)
 def _lighting(environment, base_dir, kind):
     """``build_geometry``'s ``lighting`` for a finer geometry, or None without one:
     ``kind`` = (cell, sub), the sun's cells at that size and no sky; ``kind`` a
