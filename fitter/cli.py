@@ -431,13 +431,10 @@ def cmd_render(args) -> int:
     job = _load(args.config)
     out = _image_out(args.out)
     params = read_params(args.params, job) if args.params else pipeline.truth_params(job)
-    from .envlight import lit_by_environment
     from .imageio import write_image
-    from .limits import check_render
+    from .limits import check_scene
 
-    s = job.scene
-    check_render(s.width, s.height, s.supersampling, where=job.path,
-                 env_lit=lit_by_environment(s, job.material))
+    check_scene("render", job.scene, job.material, where=job.path)
     enable_compilation_cache()
     with log.stage("rendering"):
         img = pipeline.render_params(job, params)

@@ -68,24 +68,46 @@ def available_bytes() -> float | None:
         return None
 
 
+def scene_bytes(task: str, scene, material) -> float:
+    """``job_bytes`` of a ``task`` on ``scene`` with ``material`` (env-lit where its
+    environment lights an opaque lobe, ``envlight.lit_by_environment``)."""
+    from .envlight import lit_by_environment
+
+    return job_bytes(task, scene.width, scene.height, scene.supersampling,
+                     lit_by_environment(scene, material))
+
+
+def check_scene(task: str, scene, material, where: str = "", n_starts: int = 1) -> None:
+    """``check_fit`` (``task`` "fit") or the same check of a render, of ``scene``
+    with ``material``: what ``fitter.fit``, ``fitter.render`` and the CLI check
+    before any work."""
+    from .envlight import lit_by_environment
+
+    args = (scene.width, scene.height, scene.supersampling)
+    env_lit = lit_by_environment(scene, material)
+    if task == "fit":
+        check_fit(*args, n_starts, where, env_lit)
+    else:
+        _check_film(task, *args, where, env_lit)
+
+
 def check_fit(width: int, height: int, supersampling: int, n_starts: int,
               where: str = "", env_lit: bool = False) -> None:
     """Raise ``ResourceError`` if a fit of this size cannot run here.
 
     ``where`` prefixes the message (a config path, or "" for the Python API).
     """
-    at = f"{where}: " if where else ""
     if n_starts > MAX_STARTS:
+        at = f"{where}: " if where else ""
         raise ResourceError(f"{at}fit.n_starts = {n_starts} is over the limit of {MAX_STARTS} "
                             "starts; use fewer starts")
-    check_render(width, height, supersampling, where, env_lit, task="fit")
+    _check_film("fit", width, height, supersampling, where, env_lit)
 
 
-def check_render(width: int, height: int, supersampling: int, where: str = "",
-                 env_lit: bool = False, task: str = "render") -> None:
-    """Raise ``ResourceError`` if a render (or another ``task`` of
-    ``MEMORY_MODEL``) of this size cannot run here: over ``MAX_SUPERSAMPLING``,
-    or ``job_bytes`` over ``MEMORY_SHARE`` of the memory available now."""
+def _check_film(task: str, width: int, height: int, supersampling: int, where: str,
+                env_lit: bool) -> None:
+    """Raise ``ResourceError`` over ``MAX_SUPERSAMPLING``, or where ``job_bytes``
+    is over ``MEMORY_SHARE`` of the memory available now."""
     at = f"{where}: " if where else ""
     if supersampling > MAX_SUPERSAMPLING:
         raise ResourceError(f"{at}scene.supersampling = {supersampling} is over the limit of "

@@ -161,27 +161,16 @@ def preflight(job: Job) -> None:
     """Refuse, before any work, a job over the limits of ``fitter.limits``."""
     from . import limits
 
-    from .envlight import lit_by_environment, unlit
+    from .envlight import unlit
     from .serialize import ConfigError
 
-    s = job.scene
-    reason = unlit(s, job.material)
+    reason = unlit(job.scene, job.material)
     if reason:
         raise ConfigError(f"{job.path}: {reason}")
-    limits.check_fit(s.width, s.height, s.supersampling, job.fit.n_starts, where=job.path,
-                     env_lit=lit_by_environment(s, job.material))
+    limits.check_scene("fit", job.scene, job.material, where=job.path,
+                       n_starts=job.fit.n_starts)
     if job.fit.validate:
         limits.check_spp(job.fit.validate_spp, "fit.validate_spp", where=job.path)
-
-
-def fit_memory(job: Job) -> float:
-    """Estimated peak memory (bytes) of ``job``'s fit (``limits.job_bytes``)."""
-    from . import limits
-    from .envlight import lit_by_environment
-
-    s = job.scene
-    return limits.job_bytes("fit", s.width, s.height, s.supersampling,
-                            lit_by_environment(s, job.material))
 
 
 def fit_job(job: Job, target: np.ndarray, saturated: np.ndarray,

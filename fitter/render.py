@@ -32,12 +32,11 @@ from ._keep import recent
 from ._math import to_device
 from ._modules import make_callable
 from .bsdf.base import Cosines, SurfaceHit
-from .envlight import lit_by_environment
 from .environment import EnvData, load_environment, lookup
 from .geometry import Geometry, build_geometry
 from .blasthreads import one_blas_thread
 from .hugepages import advice_off
-from .limits import check_render
+from .limits import check_scene
 from .material import EXPOSURE_KEY, Material, MaterialError, lobe_params
 from .scene import Scene, SceneError, resolve_path
 
@@ -415,8 +414,7 @@ def render(params: Mapping[str, Any], scene: Scene, material: Material | None = 
         material = Material.make(material)
     if EXPOSURE_KEY in params:
         material = material.with_exposure()
-    check_render(scene.width, scene.height, scene.supersampling,
-                 env_lit=lit_by_environment(scene, material))
+    check_scene("render", scene, material)
     numeric = {k: v for k, v in params.items() if k not in material.option_keys()}
     base_dir = os.path.abspath(base_dir) if base_dir else None
     return cached_renderer(scene, material, jnp.dtype(dtype), base_dir).image(numeric)

@@ -41,7 +41,7 @@ class Entry:
         name: output folder name under the batch folder.
         key: resume key (sha256 hex) of the job and its target.
         error: why the job cannot run (one sentence), or None.
-        memory: the fit's estimated peak memory, bytes (``limits.job_bytes``).
+        memory: the fit's estimated peak memory, bytes (``limits.scene_bytes``).
     """
 
     index: int
@@ -118,11 +118,12 @@ def _entry(index: int, item: Any, validate: bool | None) -> Entry:
             job = job.replace(fit=job.fit.replace(target=target))  # config.toml records it
         else:
             target = np.asarray(target, dtype=np.float64)
-        from ..pipeline import fit_memory, preflight
+        from ..limits import scene_bytes
+        from ..pipeline import preflight
 
         preflight(job)
         return Entry(index, label, job=job, target=target, key=resume_key(job, target),
-                     memory=fit_memory(job))
+                     memory=scene_bytes("fit", job.scene, job.material))
     except (FitterError, OSError) as exc:
         return Entry(index, label, error=_one_line(exc))
 

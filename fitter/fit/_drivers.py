@@ -21,7 +21,7 @@ import numpy as np
 from .. import envlight
 from ..blasthreads import one_blas_thread
 from ..hugepages import advice_off
-from ..limits import check_fit
+from ..limits import check_scene
 from ..material import Material
 from ..scene import Scene
 from . import _args, _coarse, _discretisation, _edge, _profile
@@ -118,8 +118,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     import_ahead(scene, material)
     n_starts = _args.option("n_starts", n_starts)
     identifiability = _args.option("identifiability", identifiability)
-    check_fit(scene.width, scene.height, scene.supersampling, n_starts,
-              env_lit=envlight.lit_by_environment(scene, material))
+    check_scene("fit", scene, material, n_starts=n_starts)
     target = _args.images(target, "target", scene)
     if target.shape not in ((scene.height, scene.width, 3), (1, scene.height, scene.width, 3)):
         several = "; use fit_batch for several targets" if target.ndim == 4 else ""
@@ -276,8 +275,7 @@ def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
     scene = _args.scene_of(scene)
     identifiability = _args.option("identifiability", identifiability)
     material = material if isinstance(material, Material) else Material.make(material)
-    check_fit(scene.width, scene.height, scene.supersampling, 1,
-              env_lit=envlight.lit_by_environment(scene, material))
+    check_scene("fit", scene, material)
     targets = _args.images(targets, "targets", scene)
     if targets.ndim != 4 or len(targets) == 0:
         raise FitError(f"targets have shape {targets.shape}, expected (B, H, W, 3) with B >= 1 "
