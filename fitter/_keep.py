@@ -9,8 +9,8 @@ scene reuses it) and older ones only while they total under ``max_bytes``.
 
 from __future__ import annotations
 
-import collections
 import functools
+import math
 import threading
 from types import ModuleType
 
@@ -35,6 +35,24 @@ def nbytes(value, _seen=None) -> int:
     return 0
 
 
+def hold(kept: dict, key, value, most: int, max_bytes: float = math.inf, size=nbytes,
+         protect: int = 1) -> None:
+    """Put ``value`` under ``key`` as the newest entry of ``kept`` (a dict keeps
+    insertion order), then ``trim`` it."""
+    kept.pop(key, None)
+    kept[key] = value
+    trim(kept, most, max_bytes, size, protect)
+
+
+def trim(kept: dict, most: int, max_bytes: float = math.inf, size=nbytes,
+         protect: int = 0) -> None:
+    """Drop the oldest entries of ``kept`` while it holds over ``most`` or their
+    ``size`` totals over ``max_bytes``; the newest ``protect`` stay."""
+    while len(kept) > protect and (len(kept) > most or (
+            max_bytes < math.inf and sum(size(v) for v in kept.values()) > max_bytes)):
+        kept.pop(next(iter(kept)))
+
+
 #: Every ``recent`` cache of the process (``release``).
 _ALL: list = []
 
@@ -57,29 +75,23 @@ def recent(max_items: int, max_bytes: float):
     ``f.cache_clear()`` empties it, ``f.cache_info()`` is (values kept, their
     bytes) and ``f.max_bytes`` the bound (it may be changed)."""
     def wrap(f):
-        kept: collections.OrderedDict = collections.OrderedDict()  # oldest first
+        kept: dict = {}  # key -> (value, its bytes), oldest first
         lock = threading.Lock()
-
-        def drop(most: int, protect: int) -> None:
-            # oldest first, while over the count or the bytes; the newest ``protect`` stay
-            while len(kept) > protect and (len(kept) > most or
-                                           sum(b for _, b in kept.values()) > g.max_bytes):
-                kept.popitem(last=False)
+        second = lambda entry: entry[1]  # noqa: E731
 
         @functools.wraps(f)
         def g(*args, **kwargs):
             key = (args, tuple(sorted(kwargs.items())))
             with lock:
                 if key in kept:
-                    kept.move_to_end(key)
+                    kept[key] = kept.pop(key)  # now the newest
                     return kept[key][0]
-                drop(max_items - 1, 1)
+                trim(kept, max_items - 1, g.max_bytes, second, protect=1)
             value = f(*args, **kwargs)  # outside the lock: a slow build blocks no other key
             with lock:
                 size = nbytes(value)
-                kept[key] = (value, size)
-                kept.move_to_end(key)
-                drop(max_items, 2 if size <= g.max_bytes else 1)
+                hold(kept, key, (value, size), max_items, g.max_bytes, second,
+                     protect=2 if size <= g.max_bytes else 1)
             return value
 
         def cache_clear() -> None:

@@ -9,7 +9,7 @@ import importlib
 import numpy as np
 
 import fitter
-from fitter._keep import nbytes, recent
+from fitter._keep import hold, nbytes, recent
 from fitter.fit import _setup
 
 render_mod = importlib.import_module("fitter.render")
@@ -29,6 +29,19 @@ def _cache(max_bytes=100):
 def test_nbytes_counts_every_array_once():
     a = np.zeros(10)
     assert nbytes({"x": a, "y": [a, np.zeros(3, np.float32)], "z": "text"}) == 80 + 12
+
+
+def test_hold_keeps_insertion_order_and_its_bounds():
+    kept: dict = {}
+    for name in "abc":
+        hold(kept, name, np.zeros(10, np.uint8), most=2)
+    assert list(kept) == ["b", "c"]  # the oldest went
+    hold(kept, "b", kept["b"], most=2)
+    assert list(kept) == ["c", "b"]  # held again: the newest
+    hold(kept, "d", np.zeros(100, np.uint8), most=5, max_bytes=50)
+    assert list(kept) == ["d"]  # over the bytes: all but the newest
+    hold(kept, "e", np.zeros(100, np.uint8), most=5, max_bytes=50, protect=0)
+    assert kept == {}  # protect=0: the newest too (the finer geometries' rule)
 
 
 def test_the_newest_value_stays_and_older_ones_only_within_the_bytes():

@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._keep import hold
 from .._math import to_device
 from ..blasthreads import catch_up
 from ..compilation_cache import FAST_COMPILE
@@ -51,12 +52,9 @@ KEEP_COMPILED = 32
 
 
 def _hold(key, exe) -> None:
-    """``exe`` under ``key`` in ``_COMPILED``, the least recently used beyond
-    ``KEEP_COMPILED`` dropped."""
-    _COMPILED.pop(key, None)
-    _COMPILED[key] = exe
-    while len(_COMPILED) > KEEP_COMPILED:
-        _COMPILED.pop(next(iter(_COMPILED)))
+    """``exe`` under ``key`` in ``_COMPILED`` as the most recently used
+    (``fitter._keep.hold``: beyond ``KEEP_COMPILED`` the least recently used go)."""
+    hold(_COMPILED, key, exe, KEEP_COMPILED)
 
 
 def jacobian_r(spec: Spec, z, data):

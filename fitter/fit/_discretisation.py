@@ -36,7 +36,7 @@ import jax
 import numpy as np
 
 from .. import envlight
-from .._keep import recent
+from .._keep import hold, nbytes, recent
 from .._math import to_device
 from ..environment import load_environment
 from ..geometry import build_geometry
@@ -280,12 +280,10 @@ def _geometry(scene, env64, lighting, flat, env_type, key):
     if key in _GEOMETRIES:
         return _GEOMETRIES[key]
     made = _joined(key)[0]
-    out = _GEOMETRIES[key] = (made if made is not None else _prepared(
+    out = (made if made is not None else _prepared(
         build_geometry(scene, env_type, env64, lighting, pixels=flat), flat))
-    size = lambda g: sum(a.nbytes for a in jax.tree_util.tree_leaves(g[0]))  # noqa: E731
-    while _GEOMETRIES and (len(_GEOMETRIES) > _KEEP_GEOMETRIES or
-                           sum(size(g) for g in _GEOMETRIES.values()) > _KEEP_BYTES):
-        _GEOMETRIES.pop(next(iter(_GEOMETRIES)))
+    hold(_GEOMETRIES, key, out, _KEEP_GEOMETRIES, _KEEP_BYTES, size=lambda g: nbytes(g[0]),
+         protect=0)  # (even the newest, if it alone is over the bytes)
     return out
 
 

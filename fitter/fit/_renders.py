@@ -12,6 +12,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from .._keep import hold
 from .._math import to_device
 from ..compilation_cache import FAST_COMPILE
 from ..render import render_active
@@ -51,10 +52,7 @@ def compile_render(args, material, env_type, key):
 
 def keep(key, exe) -> None:
     """Keep ``exe`` under ``key`` (``EXECUTABLES``), the oldest beyond ``KEEP`` dropped."""
-    EXECUTABLES.pop(key, None)
-    EXECUTABLES[key] = exe
-    while len(EXECUTABLES) > KEEP:
-        EXECUTABLES.pop(next(iter(EXECUTABLES)))
+    hold(EXECUTABLES, key, exe, KEEP)
 
 
 def render(params, geo, env, sphere, material, env_type) -> np.ndarray:
