@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import json
+import logging
 import os
 import signal
 import socket
@@ -244,15 +245,16 @@ def test_the_embedded_cluster_runs_only_as_many_jobs_side_by_side_as_memory_hold
     # Dask's default worker limit is the machine's memory over its cores: on 16 cores and
     # 32 GB a 256^2 env-lit fit (4.5 GB estimated by fitter.limits) was stopped on every
     # worker it tried. 25.6 GB usable (80 % of 32) holds 5 such jobs: 5 workers of 5.1 GB.
-    from distributed.system import MEMORY_LIMIT
+    from distributed.worker_memory import parse_memory_limit
 
     from fitter import limits
     from fitter.batch._engine import _local_size
 
     monkeypatch.setattr(os, "cpu_count", lambda: 16)
     monkeypatch.setattr(limits, "available_bytes", lambda: 32e9)
+    dask_auto = parse_memory_limit("auto", 1, logger=logging.getLogger("test"))
     n, limit = _local_size(None, _entries([4.5] * 8 + [1.0]))
-    assert n == 5 and limit == max(int(25.6e9 / 5), int(MEMORY_LIMIT / 16))
+    assert n == 5 and limit == max(int(25.6e9 / 5), dask_auto)
     assert limit >= 4.5e9  # every job's estimate fits its worker
     assert _local_size(None, _entries([1.0] * 3))[0] == 3  # small jobs: one per job
     assert _local_size(3, _entries([4.5] * 8))[0] == 3
@@ -260,7 +262,7 @@ def test_the_embedded_cluster_runs_only_as_many_jobs_side_by_side_as_memory_hold
                                          r"GB .* use --workers 5 or fewer"):
         _local_size(8, _entries([4.5] * 8))
     n, limit = _local_size(None, _entries([30.0]))  # over the share: one at a time
-    assert n == 1 and limit == max(int(25.6e9), int(MEMORY_LIMIT / 16))
+    assert n == 1 and limit == max(int(25.6e9), dask_auto)
 
 
 def test_a_job_no_worker_of_an_existing_cluster_can_hold_is_an_error_row(cases, tmp_path):

@@ -189,9 +189,14 @@ def _local_size(workers: int | None, todo: Sequence[Entry]) -> tuple[int, int | 
                          f"this machine has {have / 1e9:.1f} GB available; use --workers "
                          f"{fits} or fewer, or leave it out")
     n = min(n, fits)
-    from distributed.system import MEMORY_LIMIT
+    return n, max(int(usable / n), _dask_default_limit())
 
-    return n, max(int(usable / n), int(MEMORY_LIMIT / (os.cpu_count() or 1)))  # not below Dask's
+
+def _dask_default_limit() -> int:
+    """Dask's own memory limit of a one-thread worker (``memory_limit="auto"``)."""
+    from distributed.worker_memory import parse_memory_limit
+
+    return parse_memory_limit("auto", 1, logger=logging.getLogger(__name__)) or 0
 
 
 def _held_by_workers(client, todo: Sequence[Entry], rows: list) -> list[Entry]:
