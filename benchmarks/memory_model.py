@@ -41,6 +41,24 @@ ROWS = ("plastic:render:256:4", "plastic:render:1024:4", "plastic:fit:256:4",
         "mirror:fit:512:4")
 
 
+def _job(case: str, res: int, k: int | None = None):
+    """(job, base_dir) of a shipped case at res x res (and k x k samples)."""
+    from error_vs_time import load_job
+
+    job, base = load_job(case, res)
+    return (job if k is None else job.replace(scene=job.scene.replace(supersampling=k))), base
+
+
+def _truth_image(job, base, scene, seed: int):
+    import numpy as np
+
+    import fitter
+
+    img = np.asarray(fitter.render(job.material.full_params({**job.fixed, **job.truth}), scene,
+                                   job.material, base_dir=base))
+    return img + np.random.default_rng(seed).normal(0.0, 2e-3, img.shape)
+
+
 def worker(case: str, task: str, res: int, k: int, folder: str) -> dict:
     import resource
     import time
@@ -48,21 +66,15 @@ def worker(case: str, task: str, res: int, k: int, folder: str) -> dict:
     import numpy as np
 
     import fitter
-    from fitter import serialize
-    from fitter.cases import CASES
 
-    spec = CASES[case]
-    base = os.path.join(ROOT, "data_synthetic", case)
-    scene = serialize.scene_from_dict(spec["scene"], case, base_dir=base)
-    scene = scene.replace(width=res, height=res, supersampling=k)
-    mat, truth, _, fixed = serialize.material_from_dict(spec["material"], case)
+    job, base = _job(case, res, k)
     path = os.path.join(folder, f"{case}-{res}-{k}.npy")
     t0 = time.perf_counter()
     if task == "render" or not os.path.exists(path):
-        img = np.asarray(fitter.render(mat.full_params(truth), scene, mat, base_dir=base))
-        np.save(path, img + np.random.default_rng(0).normal(0.0, 2e-3, img.shape))
+        np.save(path, _truth_image(job, base, job.scene, 0))
     else:
-        fitter.fit(np.load(path), scene, mat, fixed=fixed or None, base_dir=base)
+        fitter.fit(np.load(path), job.scene, job.material, fixed=job.fixed or None,
+                   base_dir=base)
     return {"seconds": time.perf_counter() - t0,
             "peak": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0}
 
@@ -71,31 +83,23 @@ def many(n: int, res: int = 256) -> None:
     import gc
     import resource
 
-    import numpy as np
-
     import fitter
-    from fitter import serialize
-    from fitter.cases import CASES
     from fitter.scene import Sphere
 
-    case = "env_plastic"
-    base = os.path.join(ROOT, "data_synthetic", case)
-    scene = serialize.scene_from_dict(CASES[case]["scene"], case, base_dir=base)
-    scene = scene.replace(width=res, height=res)
-    mat, truth, _, fixed = serialize.material_from_dict(CASES[case]["material"], case)
+    job, base = _job("env_plastic", res)
     print(f"{n} env_plastic scenes at {res}² in one process; {host()}\n")
     print("| scene | sphere radius | status | RSS after GB | peak RSS so far GB |")
     print("|---|---|---|---|---|")
     for i in range(n):
-        s = scene.replace(sphere=Sphere(center=scene.sphere.center, radius=1.0 - 0.02 * i))
-        img = np.asarray(fitter.render(mat.full_params(truth), s, mat, base_dir=base))
-        img = img + np.random.default_rng(i).normal(0.0, 2e-3, img.shape)
-        r = fitter.fit(img, s, mat, fixed=fixed or None, base_dir=base)
+        radius = 1.0 - 0.02 * i
+        s = job.scene.replace(sphere=Sphere(center=job.scene.sphere.center, radius=radius))
+        r = fitter.fit(_truth_image(job, base, s, i), s, job.material, fixed=job.fixed or None,
+                       base_dir=base)
         gc.collect()
         with open("/proc/self/statm") as fh:
             rss = int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0
-        print(f"| {i} | {1.0 - 0.02 * i:.2f} | {r.status} | {rss / 1e9:.2f} | {peak / 1e9:.2f} |",
+        print(f"| {i} | {radius:.2f} | {r.status} | {rss / 1e9:.2f} | {peak / 1e9:.2f} |",
               flush=True)
 
 
@@ -129,9 +133,6 @@ def main(argv=None) -> int:
         return 0
     sys.path.insert(0, ROOT)
     from fitter import limits
-    from fitter.cases import CASES
-    from fitter.envlight import lit_by_environment
-    from fitter.serialize import material_from_dict, scene_from_dict
 
     print(f"Peak RSS against fitter.limits' estimate; {host()}\n")
     print("| scene | task | film | samples | seconds | peak RSS GB | estimate GB | "
@@ -140,10 +141,8 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as folder:
         for row in args.rows:
             case, task, res, k = row.split(":")
-            scene = scene_from_dict(CASES[case]["scene"], case,
-                                    base_dir=os.path.join(ROOT, "data_synthetic", case))
-            lit = lit_by_environment(scene, material_from_dict(CASES[case]["material"], case)[0])
-            est = limits.job_bytes(task, int(res), int(res), int(k), lit)
+            job, _ = _job(case, int(res), int(k))
+            est = limits.scene_bytes(task, job.scene, job.material)
             got = run(row, folder)
             print(f"| {case} | {task} | {res}² | {k}x{k} | {got['seconds']:.1f} | "
                   f"{got['peak'] / 1e9:.2f} | {est / 1e9:.2f} | {est / got['peak']:.2f} |",
