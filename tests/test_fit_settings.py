@@ -99,7 +99,7 @@ def test_fit_entry_points_run_with_both_settings(monkeypatch, entry):
         seen.append((advice(), blas_threads()))
         raise _Stop
 
-    monkeypatch.setattr(_drivers, "check_fit", probe)
+    monkeypatch.setattr(_drivers, "check_scene", probe)
     target = np.zeros((8, 8, 3)) if entry == "fit" else np.zeros((1, 8, 8, 3))
     scene = serialize.scene_from_dict(CASES["plastic"]["scene"], "plastic")
     with pytest.raises(_Stop):
