@@ -19,10 +19,13 @@ from .._math import dot, safe_div, safe_sqrt
 #: Within this of eta = 1 the Fresnel amplitudes are written without cancellation.
 NEAR_ONE = 1e-2
 
+# A scalar's reciprocal is taken once and multiplied per sample: the specular
+# lobes' renders are bound by per-sample divisions (``microfacet``, same rule).
+
 
 def cos_transmitted_sq(cos_i, eta):
     """cos^2 of the refracted angle, 1 - (1 - cos_i^2) / eta^2; < 0 means TIR."""
-    return 1.0 - (1.0 - cos_i * cos_i) / (eta * eta)
+    return 1.0 - (1.0 - cos_i * cos_i) * (1.0 / (eta * eta))
 
 
 def fresnel_dielectric(cos_i, eta):
@@ -55,8 +58,8 @@ def _amplitudes(cos_i, eta, cos_t, ok):
     b_p = jnp.where(ok, eta * cos_i + cos_t, 1.0)  # > 0 where ok
     b_s = jnp.where(ok, cos_i + eta * cos_t, 1.0)
     near = jnp.abs(eta - 1.0) < NEAR_ONE
-    num_p = jnp.where(near, e2m1 * (cos_i * cos_i - (1.0 - cos_i * cos_i) / (eta * eta)) / b_p,
-                      eta * cos_i - cos_t)
+    num_p = jnp.where(near, e2m1 * (cos_i * cos_i - (1.0 - cos_i * cos_i) * (1.0 / (eta * eta)))
+                      / b_p, eta * cos_i - cos_t)
     num_s = jnp.where(near, -e2m1 / b_s, cos_i - eta * cos_t)
     return safe_div(num_p, b_p, ok), safe_div(num_s, b_s, ok)
 
@@ -72,10 +75,10 @@ def fresnel_dielectric_deta(cos_i, eta):
     against ``jax.jacfwd``.
     """
     sin2 = 1.0 - cos_i * cos_i
-    ct2 = 1.0 - sin2 / (eta * eta)
+    ct2 = 1.0 - sin2 * (1.0 / (eta * eta))
     ok = ct2 > 0
     cos_t = safe_sqrt(ct2)
-    dcos_t = safe_div(sin2, eta * eta * eta * cos_t, ok)
+    dcos_t = safe_div(sin2 * (1.0 / (eta * eta * eta)), cos_t, ok)
     b_p, b_s = eta * cos_i + cos_t, cos_i + eta * cos_t
     r_p, r_s = _amplitudes(cos_i, eta, cos_t, ok)
     # (a' b - a b') / b^2 simplified by hand, so the factor cos_i is explicit
