@@ -52,16 +52,20 @@ def _amplitudes(cos_i, eta, cos_t, ok):
     subtracted near eta = 1 (where F ~ (eta - 1)^2): using eta^2 c_t^2 =
     eta^2 - s^2, r_s = (1 - eta^2)/(c_i + eta c_t)^2 and r_p = (eta^2 - 1)
     (c_i^2 - s^2/eta^2)/(eta c_i + c_t)^2, s^2 = 1 - c_i^2. Used within
-    ``NEAR_ONE`` of eta = 1 only; elsewhere the direct quotients are exact at
-    grazing (r = -1, F = 1 exactly)."""
+    ``NEAR_ONE`` of eta = 1 only; elsewhere the direct numerators (times b, over
+    b^2) are exact at grazing (r = -1, F = 1 exactly)."""
     e2m1 = (eta - 1.0) * (eta + 1.0)
     b_p = jnp.where(ok, eta * cos_i + cos_t, 1.0)  # > 0 where ok
     b_s = jnp.where(ok, cos_i + eta * cos_t, 1.0)
     near = jnp.abs(eta - 1.0) < NEAR_ONE
-    num_p = jnp.where(near, e2m1 * (cos_i * cos_i - (1.0 - cos_i * cos_i) * (1.0 / (eta * eta)))
-                      / b_p, eta * cos_i - cos_t)
-    num_s = jnp.where(near, -e2m1 / b_s, cos_i - eta * cos_t)
-    return safe_div(num_p, b_p, ok), safe_div(num_s, b_s, ok)
+    # Both forms over b^2, so each amplitude costs one division (the renders are
+    # bound by them); (eta c_i - c_t) b_p is the far form's numerator times b_p.
+    # The floor only meets b ~ 0: eta = 1 at c_i < 1e-150, where the numerator is 0.
+    num_p = jnp.where(near, e2m1 * (cos_i * cos_i - (1.0 - cos_i * cos_i) * (1.0 / (eta * eta))),
+                      (eta * cos_i - cos_t) * b_p)
+    num_s = jnp.where(near, -e2m1, (cos_i - eta * cos_t) * b_s)
+    return (safe_div(num_p, jnp.maximum(b_p * b_p, 1e-300), ok),
+            safe_div(num_s, jnp.maximum(b_s * b_s, 1e-300), ok))
 
 
 def fresnel_dielectric_deta(cos_i, eta):
