@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._math import to_device
-from .bsdf.base import Cosines, cosines
+from .bsdf.base import COT_NORMAL, Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
 from .compilation_cache import FAST_COMPILE
 from .environment import EnvData, lookup
@@ -331,7 +331,7 @@ SUN_EDGE = 0.05
 
 #: Cosines where a sample is unlit (its weight is 0): finite stand-ins, so no lobe
 #: formula sees a zero or negative cosine there (the double-where rule).
-_STAND_IN = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0)
+_STAND_IN = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0, COT_NORMAL, COT_NORMAL)
 
 
 #: ``_sun_group`` works on this many (light, sample) pairs at a time: fresh temporaries
@@ -444,7 +444,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))
-        e_cos = Cosines(*(np.zeros((0, 0)),) * 6)
+        e_cos = Cosines(*(np.zeros((0, 0)),) * len(Cosines._fields))
         e_irr = np.zeros((pixel_index.size, 3))
         sun = sun if lighting is not None else ()
     return Geometry(pixel_index, hit, weight, pos, normal, d_a, cos, light_weight, color,

@@ -226,7 +226,8 @@ def _node_geometry(nodes: int, sub: tuple, rings: int = 1):
     cos = _reshaped(cos, (nodes, n_cells, sa * sp))
     # cos_o = n . wo is one value per node: kept (T, 1, 1), so that a lobe's terms in
     # cos_o alone (Smith's G1(cos_o)) are evaluated per node, not per point.
-    return cos._replace(cos_o=np.ascontiguousarray(cos.cos_o[:, :1, :1])), w
+    return cos._replace(cos_o=np.ascontiguousarray(cos.cos_o[:, :1, :1]),
+                        cot_o=np.ascontiguousarray(cos.cot_o[:, :1, :1])), w
 
 
 def _reshaped(cos, shape):

@@ -204,6 +204,28 @@ def smith_g1(cos_w, m):
     return np.where(a >= 1.6, 1.0, (3.535 * a + 2.181 * a**2) / (1 + 2.276 * a + 2.577 * a**2))
 
 
+def test_cosines_cotangents():
+    """Cosines.cot_i, cot_o = cot(theta) of wi's and wo's angles to n, reference
+    1 / tan(arccos(cos)) (trigonometry, not the cos / sin the code takes), in
+    both code paths (NumPy for the tabulated geometry, JAX); COT_NORMAL along n,
+    where Smith's G1 is 1."""
+    from fitter.bsdf.base import COT_NORMAL, cosines
+    from fitter.bsdf.microfacet import smith_g1_beckmann
+
+    wi, wo = _random_pairs(np.random.default_rng(5), 500, upper=False)
+    wi[0] = wo[1] = NORMAL
+    n = np.broadcast_to(NORMAL, wi.shape)
+    with np.errstate(divide="ignore"):
+        want_i, want_o = (1.0 / np.tan(np.arccos(w[:, 2])) for w in (wi, wo))
+    for c in (cosines(n, wi, wo), cosines(jnp.asarray(n), jnp.asarray(wi), jnp.asarray(wo))):
+        for got, want in ((c.cot_i, want_i), (c.cot_o, want_o)):
+            got = np.asarray(got)
+            along = ~np.isfinite(want)
+            assert along.sum() == 1 and np.all(got[along] == COT_NORMAL)
+            np.testing.assert_allclose(got[~along], want[~along], rtol=1e-10, atol=1e-12)
+    assert float(smith_g1_beckmann(COT_NORMAL, 1e-4)) == 1.0
+
+
 @pytest.mark.parametrize("geometry", ["v_groove", "smith"])
 @pytest.mark.parametrize("m,eta", [(0.05, 1.5), (0.3, 1.0), (0.7, 2.5), (1.0, 4.0)])
 def test_torrance_sparrow_matches_closed_form(geometry, m, eta):

@@ -119,7 +119,10 @@ class Cosines(NamedTuple):
     With H = wi + wo and h = H / |H| the half vector: cos_h = n.h,
     cos_d = wo.h (= wi.h) and tan2_h = tan^2 of the angle between n and h,
     taken as |n x H|^2 / (n.H)^2 (accurate near 0, unlike 1/cos^2 - 1).
-    Where n.H <= 0 or H = 0, cos_h = cos_d = tan2_h = 0.
+    Where n.H <= 0 or H = 0, cos_h = cos_d = tan2_h = 0. cot_i, cot_o =
+    cos / sin of wi's and wo's angle to n (``COT_NORMAL`` where sin = 0):
+    tabulated with the geometry, as a lobe's per-sample sqrt and division
+    (Smith's G1) bound its renders.
     """
 
     cos_i: Any
@@ -128,6 +131,22 @@ class Cosines(NamedTuple):
     cos_h: Any
     cos_d: Any
     tan2_h: Any
+    cot_i: Any
+    cot_o: Any
+
+
+#: cot of a direction along the normal (sin = 0): finite in float32 too, and beyond
+#: any roughness's reach (Smith's a = cot / m >= 1.6, so G1 = 1 there, as at sin = 0);
+#: where sin > 0 cot <= 1 / sqrt(eps) (float64: 6.7e7).
+COT_NORMAL = 1e30
+
+
+def _cot(c, xp):
+    """cos / sin of the angle whose cosine is ``c`` (``COT_NORMAL`` where sin = 0),
+    with finite derivatives (double where)."""
+    s2 = 1.0 - c * c
+    tilted = s2 > 0
+    return xp.where(tilted, c / xp.sqrt(xp.where(tilted, s2, 1.0)), COT_NORMAL)
 
 
 def cosines(n, wi, wo) -> Cosines:
@@ -147,7 +166,8 @@ def cosines(n, wi, wo) -> Cosines:
     inv = jnp.where(up, 1.0 / jnp.sqrt(jnp.where(up, hh, 1.0)), 0.0)
     cr = jnp.cross(n, h)
     tan2 = jnp.where(up, dot_(cr, cr) / jnp.where(up, nh * nh, 1.0), 0.0)
-    return Cosines(ci, co, dot_(wi, wo), nh * inv, dot_(wo, h) * inv, tan2)
+    return Cosines(ci, co, dot_(wi, wo), nh * inv, dot_(wo, h) * inv, tan2, _cot(ci, jnp),
+                   _cot(co, jnp))
 
 
 def _cosines_np(n, wi, wo) -> Cosines:
@@ -164,7 +184,9 @@ def _cosines_np(n, wi, wo) -> Cosines:
     inv = np.where(up, 1.0 / np.sqrt(np.where(up, hh, 1.0)), 0.0)
     cr = (n[1] * h[2] - n[2] * h[1], n[2] * h[0] - n[0] * h[2], n[0] * h[1] - n[1] * h[0])
     tan2 = np.where(up, dot_(cr, cr) / np.where(up, nh * nh, 1.0), 0.0)
-    return Cosines(ci, co, dot_(wi, wo), nh * inv, dot_(wo, h) * inv, tan2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cots = _cot(ci, np), _cot(co, np)
+    return Cosines(ci, co, dot_(wi, wo), nh * inv, dot_(wo, h) * inv, tan2, *cots)
 
 
 class SurfaceHit(NamedTuple):

@@ -16,7 +16,7 @@ References:
 from __future__ import annotations
 
 from .._lazy import jnp
-from .._math import safe_div, safe_sqrt
+from .._math import safe_div
 
 #: Smallest roughness evaluated (Mitsuba clamps alpha the same way).
 M_MIN = 1e-4
@@ -68,27 +68,26 @@ def g_v_groove(cos_h, cos_i, cos_o, wo_h):
     return jnp.clip(jnp.minimum(g_o, g_i), 0.0, 1.0)
 
 
-def smith_g1_beckmann(cos_w, m):
+def smith_g1_beckmann(cot_w, m):
     """Walter et al. (2007) rational approximation of the Beckmann Smith G1.
 
     a = 1 / (m tan(theta)); G1 = 1 for a >= 1.6, else
     (3.535 a + 2.181 a^2) / (1 + 2.276 a + 2.577 a^2). Mitsuba 3's
-    ``roughconductor`` uses the same form. ``cos_w`` is n . w, in [0, 1].
+    ``roughconductor`` uses the same form. ``cot_w`` is cot(theta) of w's
+    angle to n (``Cosines.cot_i``, ``cot_o``; ``base.COT_NORMAL`` along n).
     """
-    return smith_g1_beckmann_dm(cos_w, m)[0]  # the unused derivative is compiled away
+    return smith_g1_beckmann_dm(cot_w, m)[0]  # the unused derivative is compiled away
 
 
-def smith_g1_beckmann_dm(cos_w, m):
+def smith_g1_beckmann_dm(cot_w, m):
     """G1 (as ``smith_g1_beckmann``) and dG1/dm, each (...).
 
-    a = cos / (m sin) gives da/dm = -a/m; G1 = N(a)/Q(a) gives
+    a = cot / m gives da/dm = -a/m; G1 = N(a)/Q(a) gives
     dG1/da = (N' Q - N Q') / Q^2. Zero where G1 = 1 (a >= 1.6) or m < M_MIN.
     """
     mc = jnp.maximum(m, M_MIN)
-    sin_w = safe_sqrt(1.0 - cos_w * cos_w)
-    tilted = sin_w > 0
-    a = safe_div(cos_w * (1.0 / mc), sin_w, tilted)
-    short = tilted & (a < 1.6)
+    a = cot_w * (1.0 / mc)  # (COT_NORMAL / mc stays finite: 1e34 at M_MIN)
+    short = a < 1.6
     a_s = jnp.where(short, a, 1.0)
     num = 3.535 * a_s + 2.181 * a_s * a_s
     den = 1.0 + 2.276 * a_s + 2.577 * a_s * a_s
@@ -97,6 +96,7 @@ def smith_g1_beckmann_dm(cos_w, m):
     return jnp.where(short, num / den, 1.0), dg_dm
 
 
-def g_smith(cos_i, cos_o, m):
-    """Separable Smith shadowing-masking G1(wi) G1(wo) (Beckmann, Walter form)."""
-    return smith_g1_beckmann(cos_i, m) * smith_g1_beckmann(cos_o, m)
+def g_smith(cot_i, cot_o, m):
+    """Separable Smith shadowing-masking G1(wi) G1(wo) (Beckmann, Walter form), from
+    the cotangents of wi's and wo's angles to n."""
+    return smith_g1_beckmann(cot_i, m) * smith_g1_beckmann(cot_o, m)
