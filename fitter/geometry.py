@@ -166,7 +166,7 @@ class Geometry(NamedTuple):
         env_rows = np.where(idx >= 0, inv[np.maximum(idx, 0)], -1)
         env_rows = np.where((idx >= 0) & (env_rows < 0), len(rows), env_rows)
         sun = tuple((inv[np.asarray(i)][inv[np.asarray(i)] >= 0],
-                     Cosines(*(np.asarray(a)[:, inv[np.asarray(i)] >= 0] for a in cs)),
+                     cs.map(lambda a: np.asarray(a)[:, inv[np.asarray(i)] >= 0]),
                      np.asarray(wt)[:, inv[np.asarray(i)] >= 0], np.asarray(col))
                     for i, cs, wt, col in self.sun)
         env = (_own_samples(self, env_rows, len(rows)) if own_samples and self.has_sky
@@ -194,7 +194,7 @@ class Geometry(NamedTuple):
             env_irradiance=(pick_irradiance or pick)(self.env_irradiance), hit=pick(self.hit),
             pixel_index=None if self.pixel_index is None else pick(self.pixel_index),
             position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
-            cosines=Cosines(*(per_light(a) for a in self.cosines)),
+            cosines=self.cosines.map(per_light),
             light_weight=per_light(self.light_weight), background=pick(self.background))
 
 
@@ -340,11 +340,17 @@ _STAND_IN = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0, COT_NORMAL, COT_NORMAL)
 SUN_CHUNK = 1 << 16
 
 
+#: The sun cells' ``Cosines`` fields: no cotangents (the lobe takes them from the
+#: cosines), as their (cells x samples) arrays are most of an env-lit fit's memory
+#: (tabulated, env_plastic's peak grew 8-12 %).
+_SUN_FIELDS = 6
+
+
 def _sun_group(n, v, w, rows, dirs, irr):
     """(index, Cosines (L, Q), weight (L, Q), colour (L, 3)) of lights ``dirs`` (L, 3)."""
     n, v, w, dirs = (np.asarray(a, np.float64) for a in (n, v, w, dirs))
     L, Q = dirs.shape[0], n.shape[0]
-    cos = Cosines(*(np.empty((L, Q)) for _ in Cosines._fields))
+    cos = Cosines(*(np.empty((L, Q)) for _ in range(_SUN_FIELDS)))
     weight = np.empty((L, Q))
     step = max(1, SUN_CHUNK // max(L, 1))
     for s in range(0, Q, step):
@@ -352,7 +358,7 @@ def _sun_group(n, v, w, rows, dirs, irr):
         # np.cross took 6 s of a first env fit's 2k-sample discretisation check.
         part = cosines(n[None, s:s + step], dirs[:, None], v[None, s:s + step])
         lit = (part.cos_i > 0) & (part.cos_o > 0)
-        for out, a, b in zip(cos, part, _STAND_IN):
+        for out, a, b in zip(cos[:_SUN_FIELDS], part, _STAND_IN):
             out[:, s:s + step] = np.where(lit, a, b)
         weight[:, s:s + step] = np.where(lit, w[s:s + step] * cos.cos_i[:, s:s + step], 0.0)
     return rows, cos, weight, np.asarray(irr, np.float64)

@@ -29,11 +29,12 @@ MAX_SPP = 1 << 16
 #: 1024^2 x 4^2 5.4-6.0 GB; env-lit 128^2 x 4^2 1.7 GB, 128^2 x 8^2 3.4 GB,
 #: 512^2 x 4^2 11.8 GB (the sky table per env sample, the sun's cells per
 #: highlight sample and the finer model of the stated errors). A render:
-#: point-lit 1024^2 x 4^2 5.3 GB, env-lit 512^2 x 4^2 8.6-8.8 GB.
+#: point-lit 1024^2 x 4^2 5.3-5.5 GB (5.5 since the lights' samples carry their
+#: cotangents, ``Cosines``), env-lit 512^2 x 4^2 8.6-8.8 GB.
 MEMORY_MODEL = {
     ("fit", False): (0.8e9, 0.0, 350.0),
     ("fit", True): (0.9e9, 1.3e4, 2650.0),
-    ("render", False): (0.3e9, 0.0, 330.0),
+    ("render", False): (0.3e9, 0.0, 340.0),
     ("render", True): (0.55e9, 8e3, 1600.0),
 }
 #: Share of the machine's available memory a fit may plan to use.

@@ -31,7 +31,7 @@ from . import checks
 from ._keep import recent
 from ._math import to_device
 from ._modules import make_callable
-from .bsdf.base import Cosines, SurfaceHit
+from .bsdf.base import SurfaceHit
 from .environment import EnvData, load_environment, lookup
 from .geometry import Geometry, build_geometry
 from .blasthreads import one_blas_thread
@@ -158,7 +158,7 @@ def _brdf_unit(lobe, p, opts, geo: Geometry, lights=None):
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
     args = (geo.cosines, geo.light_weight, geo.light_color)
     if lights is not None:  # a sample list: K = 1
-        args = (Cosines(*(a[..., None] for a in lights[0])), lights[1][..., None], lights[2])
+        args = (lights[0].map(lambda a: a[..., None]), lights[1][..., None], lights[2])
     if theta is None:
         return unit(None, *args)
     return _with_local_jacobian(unit, theta, *args,

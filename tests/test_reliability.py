@@ -92,7 +92,7 @@ def test_renders_are_checked_against_memory_too(small, tmp_path, capsys, monkeyp
     scene = fitter.Scene(width=1024, height=1024, supersampling=4,
                          lights=(fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),))
     with pytest.raises(limits.ResourceError,
-                       match=r"^a 1024x1024 render at .* needs about 5\.8 GB .* 2\.0 GB"):
+                       match=r"^a 1024x1024 render at .* needs about 6\.0 GB .* 2\.0 GB"):
         fitter.render({"lambert.rho_d": 0.5}, scene)
     with pytest.raises(limits.ResourceError, match=r"scene\.supersampling = 40 is over"):
         fitter.render({"lambert.rho_d": 0.5}, scene.replace(width=8, height=8,

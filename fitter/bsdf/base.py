@@ -122,7 +122,8 @@ class Cosines(NamedTuple):
     Where n.H <= 0 or H = 0, cos_h = cos_d = tan2_h = 0. cot_i, cot_o =
     cos / sin of wi's and wo's angle to n (``COT_NORMAL`` where sin = 0):
     tabulated with the geometry, as a lobe's per-sample sqrt and division
-    (Smith's G1) bound its renders.
+    (Smith's G1) bound its renders; None where not tabulated (``cotangents``
+    then takes them from the cosines).
     """
 
     cos_i: Any
@@ -131,8 +132,19 @@ class Cosines(NamedTuple):
     cos_h: Any
     cos_d: Any
     tan2_h: Any
-    cot_i: Any
-    cot_o: Any
+    cot_i: Any = None
+    cot_o: Any = None
+
+    def map(self, fn) -> "Cosines":
+        """``fn`` applied to each field that is there (None stays None)."""
+        return Cosines(*(None if a is None else fn(a) for a in self))
+
+
+def cotangents(c: Cosines):
+    """(cot_i, cot_o) of ``c``: its tabulated ones, else from cos_i, cos_o (JAX)."""
+    if c.cot_i is not None:
+        return c.cot_i, c.cot_o
+    return _cot(c.cos_i, jnp), _cot(c.cos_o, jnp)
 
 
 #: cot of a direction along the normal (sin = 0): finite in float32 too, and beyond

@@ -38,7 +38,7 @@ import math
 
 from .._lazy import jnp
 from .._math import safe_div
-from .base import Hints, Lobe, Option, Param, Point, Quadrature
+from .base import Hints, Lobe, Option, Param, Point, Quadrature, cotangents
 from .fresnel import (conductor_f0, fresnel_conductor, fresnel_conductor_grad, fresnel_dielectric,
                       fresnel_dielectric_deta)
 from .metals import METALS
@@ -74,7 +74,7 @@ def _shape(p, opts, c):
     ok = (ci > 0) & (co > 0)
     d = beckmann_d_lecture(c.cos_h, c.tan2_h, m)
     if opts.get("geometry", "v_groove") == "smith":
-        g = g_smith(c.cot_i, c.cot_o, m)
+        g = g_smith(*cotangents(c), m)
     else:
         g = g_v_groove(c.cos_h, ci, co, c.cos_d)
     if opts.get("fresnel", "dielectric") == "conductor":
@@ -92,8 +92,9 @@ def _shape_grad(p, opts, c):
     dlog_d = beckmann_dlog_d_dm(jnp.where(d > 0, c.tan2_h, 0.0), m)
     f, df = _fresnel(p, opts, c.cos_d)
     if opts.get("geometry", "v_groove") == "smith":
-        g_i, dg_i = smith_g1_beckmann_dm(c.cot_i, m)
-        g_o, dg_o = smith_g1_beckmann_dm(c.cot_o, m)
+        cot_i, cot_o = cotangents(c)
+        g_i, dg_i = smith_g1_beckmann_dm(cot_i, m)
+        g_o, dg_o = smith_g1_beckmann_dm(cot_o, m)
         g, dg = g_i * g_o, dg_i * g_o + g_i * dg_o
     else:
         g, dg = g_v_groove(c.cos_h, ci, co, c.cos_d), 0.0
