@@ -154,8 +154,8 @@ COT_NORMAL = 1e30
 
 
 def _cot(c, xp):
-    """cos / sin of the angle whose cosine is ``c`` (``COT_NORMAL`` where sin = 0),
-    with finite derivatives (double where)."""
+    """cos / sin of the angle whose cosine is ``c`` (``COT_NORMAL`` where sin = 0;
+    the double where keeps sin = 0 out of the division and its derivative)."""
     s2 = 1.0 - c * c
     tilted = s2 > 0
     return xp.where(tilted, c / xp.sqrt(xp.where(tilted, s2, 1.0)), COT_NORMAL)
