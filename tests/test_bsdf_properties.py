@@ -224,6 +224,19 @@ def test_cosines_cotangents():
             assert along.sum() == 1 and np.all(got[along] == COT_NORMAL)
             np.testing.assert_allclose(got[~along], want[~along], rtol=1e-10, atol=1e-12)
     assert float(smith_g1_beckmann(COT_NORMAL, 1e-4)) == 1.0
+    # Without tabulated cotangents (the sun's cells) the lobe takes them from the
+    # cosines: the same shape and derivatives.
+    lobe = LOBES["torrance_sparrow"]
+    p = {"m": jnp.float64(0.2), "eta": jnp.float64(1.5), "rho_s": jnp.float64(1.0)}
+    c = cosines(jnp.asarray(n), jnp.asarray(wi), jnp.asarray(wo))
+    bare = c._replace(cot_i=None, cot_o=None)
+    opts = {"geometry": "smith"}
+    np.testing.assert_allclose(lobe.shape(p, opts, bare), lobe.shape(p, opts, c), rtol=1e-13,
+                               atol=1e-15)
+    (g0, d0), (g1, d1) = lobe.shape_grad(p, opts, bare), lobe.shape_grad(p, opts, c)
+    np.testing.assert_allclose(g0, g1, rtol=1e-13, atol=1e-15)
+    for k in d1:
+        np.testing.assert_allclose(d0[k], d1[k], rtol=1e-13, atol=1e-15)
 
 
 @pytest.mark.parametrize("geometry", ["v_groove", "smith"])
