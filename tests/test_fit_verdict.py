@@ -75,3 +75,24 @@ def test_out_of_steps_is_said_in_the_products_words():
     # Nothing lies within its stated error of a bound: the budget is the advice
     # (the box-edge case, extreme_sigma0: tests/test_mitsuba_recovery.py).
     assert "raise max_steps" in r.message and "bound" not in r.message
+
+
+def test_immerkaer_estimate_of_white_noise():
+    """Reference: for white Gaussian noise of sigma, E |I * N| = 6 sigma sqrt(2/pi)
+    (N = [1 -2 1]^T [1 -2 1] has sum of squares 36), so the estimate is sigma,
+    within its sampling error (~0.3 % here); a smooth (quadratic) image under the
+    noise adds < 1e-3 relative. Pixels whose 3 x 3 neighbourhood holds a NaN or an
+    Inf are left out, and an empty mask gives NaN."""
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[:256, :256] / 256.0
+    smooth = np.stack([0.2 + 0.3 * xx, 0.5 * yy * yy, 0.1 + 0.0 * xx], -1)
+    sigma = np.array([0.01, 0.02, 0.005])
+    img = smooth + rng.normal(size=smooth.shape) * sigma
+    mask = (yy - 0.5) ** 2 + (xx - 0.5) ** 2 < 0.45**2
+    clean = estimate_noise(img, mask)
+    np.testing.assert_allclose(clean, sigma, rtol=0.02)
+    img[100, 100, 1], img[50, 60, 0], img[70, 70, 2] = np.nan, np.inf, -np.inf
+    dirty = estimate_noise(img, mask)
+    assert np.all(np.isfinite(dirty))
+    np.testing.assert_allclose(dirty, sigma, rtol=0.02)
+    assert np.all(np.isnan(estimate_noise(img, np.zeros_like(mask))))

@@ -16,14 +16,22 @@ def estimate_noise(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Per-channel noise standard deviation (3,) from pixels whose 3 x 3
     neighbourhood lies inside ``mask`` ((H, W) bool); NaN if there are none."""
     img = np.asarray(image, dtype=np.float64)
-    d2x = img[:, :-2] - 2.0 * img[:, 1:-1] + img[:, 2:]
-    lap = d2x[:-2] - 2.0 * d2x[1:-1] + d2x[2:]  # (H-2, W-2, 3), centred
+    h, w, c = img.shape
+    rows = img.reshape(h, w * c)  # x neighbours c apart on contiguous rows
+    d2x = rows[:, :-2 * c] - 2.0 * rows[:, c:-c] + rows[:, 2 * c:]
+    lap = np.abs(d2x[:-2] - 2.0 * d2x[1:-1] + d2x[2:]).reshape(-1, c)  # (H-2)(W-2), centred
     m = np.asarray(mask, dtype=bool)
     inside = np.ones((m.shape[0] - 2, m.shape[1] - 2), dtype=bool)
     for dy in range(3):
         for dx in range(3):
             inside &= m[dy:dy + m.shape[0] - 2, dx:dx + m.shape[1] - 2]
-    inside &= np.all(np.isfinite(lap), axis=-1)
-    if not inside.any():
-        return np.full(img.shape[-1], np.nan)
-    return np.sqrt(np.pi / 2.0) / 6.0 * np.mean(np.abs(lap[inside]), axis=0)
+    # Sums over the 3 channels and the pixels as products: NumPy's reductions over a
+    # last axis of 3 and its boolean picks took 2.5 of 4.7 ms at 256^2.
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(lap @ np.ones(c))
+    lap[bad] = 0.0
+    inside = inside.reshape(-1) & ~bad
+    n = int(np.count_nonzero(inside))
+    if not n:
+        return np.full(c, np.nan)
+    return np.sqrt(np.pi / 2.0) / 6.0 * (inside.astype(np.float64) @ lap) / n
