@@ -42,8 +42,8 @@ def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
     flat = target.reshape(h * w, 3)[renderer.pixel_index]
     hit = np.asarray(geo.hit)
     if isinstance(mask, str):
-        if mask == "interior":
-            chosen = hit.all(axis=1)
+        if mask == "interior":  # every sample: a count by a product (all() over K: 2x slower)
+            chosen = (hit @ np.ones(hit.shape[1])) == hit.shape[1]
         elif mask == "active":
             chosen = np.ones(hit.shape[0], dtype=bool)
         else:
@@ -53,7 +53,8 @@ def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
         if m.shape != (h, w):
             raise FitError(f"mask has shape {m.shape}, expected {(h, w)}")
         chosen = m.reshape(-1)[renderer.pixel_index]
-    good = np.all(np.isfinite(flat), axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):  # a NaN/Inf channel makes the sum one
+        good = np.isfinite(flat @ np.ones(3))
     if exclude is not None:
         ex = np.asarray(exclude, dtype=bool)
         if ex.shape != (h, w):
