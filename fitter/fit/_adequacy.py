@@ -111,13 +111,16 @@ def sandwich(J, r, ids, n_blocks: int, gram=None):
     ``gram``: J^T J if the caller has it."""
     J = np.asarray(J, dtype=np.float64)
     n = J.shape[1]
-    rows = np.repeat(np.asarray(ids), J.shape[0] // len(ids))
-    # (n, N), each column of J r contiguous for its block sums (bincount: ~10x
-    # faster than np.add.at, same sums up to the order of addition).
+    ids = np.asarray(ids)
+    per = J.shape[0] // len(ids)  # residuals per pixel
+    # (n, N), each column of J r contiguous; summed per pixel by a product (n, P),
+    # then per block by bincount (~10x faster than np.add.at; the same sums up to
+    # the order of addition).
     Jr = np.multiply(J.T, np.asarray(r, dtype=np.float64), order="C")
+    Jr = Jr.reshape(n, -1, per) @ np.ones(per)
     g = np.zeros((n_blocks, n))
     for j in range(n):
-        g[:, j] = np.bincount(rows, Jr[j], minlength=n_blocks)
+        g[:, j] = np.bincount(ids, Jr[j], minlength=n_blocks)
     bread = np.linalg.pinv(J.T @ J if gram is None else gram, hermitian=True)
     meat = g.T @ g * n_blocks / max(n_blocks - n, 1)
     return bread @ meat @ bread

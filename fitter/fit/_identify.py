@@ -302,8 +302,9 @@ def weak_profile(spec: Spec, data, z, J, r, noise_sigma):
     g = J_full.T @ r
     dz = newton_step(J, g)  # zero where g is not finite
     points = [(t, zt + dz) for t, zt in points]
+    # (J^T J from the R factor: R^T R, not a pass over J's rows)
     costs = subset_costs(spec, data, z, J_full if same else None, r, s2, cost, points,
-                         chi2_1dof_level(), PROFILE_FLAT)
+                         chi2_1dof_level(), PROFILE_FLAT, grad=g, gram=J.T @ J)
     if costs is None:
         costs = costs_at(spec, np.stack([zt for _, zt in points]), data)
     evaluated = [(t, zt, float(c)) for (t, zt), c in zip(points, costs)]

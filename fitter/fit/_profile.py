@@ -195,18 +195,21 @@ def _made_ahead(data, rows):
     return made[2]
 
 
-def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float):
+def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float, grad=None, gram=None):
     """(estimated chi^2 rises (k,), their standard errors (k,)) at z + dz.
 
     ``J`` (N, n), ``r`` (N,): the whole Jacobian and residuals at z (3 per
     pixel, channel fastest); ``dzs`` (k, n); ``r_sub`` (k, 3M): the residuals
-    of the pixels ``rows`` (M,) at each point, ``weight`` (M,) theirs.
+    of the pixels ``rows`` (M,) at each point, ``weight`` (M,) theirs;
+    ``grad``, ``gram``: J^T r and J^T J (= R^T R) where the caller has them.
     """
     J = np.asarray(J, dtype=np.float64)
     r = np.asarray(r, dtype=np.float64)
     dzs = np.asarray(dzs, dtype=np.float64)
+    grad = J.T @ r if grad is None else np.asarray(grad, dtype=np.float64)
+    gram = J.T @ J if gram is None else np.asarray(gram, dtype=np.float64)
     # The whole quadratic (k,) from J^T r and J^T J: no (k, N) array.
-    quad = dzs @ (J.T @ r) + 0.5 * np.einsum("ki,ij,kj->k", dzs, J.T @ J, dzs)
+    quad = dzs @ grad + 0.5 * np.einsum("ki,ij,kj->k", dzs, gram, dzs)
     idx = (3 * rows[:, None] + np.arange(3)).reshape(-1)
     r0, lin = r[idx], dzs @ J[idx].T
     k = len(dzs)
@@ -232,11 +235,12 @@ def near_threshold(t: float, rise: float, se: float, level: float, flat: float) 
 
 
 def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: float,
-                 flat: float, stride: int = BODY_STRIDE):
+                 flat: float, stride: int = BODY_STRIDE, grad=None, gram=None):
     """Costs (k,) at ``points`` [(t, z_t)] for ``profile_verdict``: cost +
     s2 / 2 times the estimated rise, or the whole image's cost where the
     estimate is too close to a threshold; None when the subset does not apply
-    (too few pixels, or no whole Jacobian ``J``)."""
+    (too few pixels, or no whole Jacobian ``J``). ``grad``, ``gram``: as
+    ``estimated_rises``'."""
     from ._compile import costs_at, residuals_at_points, residuals_of_rows
 
     if (not ENABLED or J is None or np.shape(J)[0] != np.size(r)
@@ -252,7 +256,7 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
         r_sub = residuals_at_points(spec, zs, subset_data(data, rows, _made_ahead(data, rows)))
     else:
         r_sub = residuals_of_rows(spec, zs, data, rows)
-    rise, se = estimated_rises(J, r, dzs, r_sub, rows, weight, s2)
+    rise, se = estimated_rises(J, r, dzs, r_sub, rows, weight, s2, grad, gram)
     costs = cost + 0.5 * s2 * rise
     costs[~np.all(np.isfinite(r_sub), axis=1)] = np.nan  # a subset pixel's NaN is the image's
     redo = [i for i, (t, _) in enumerate(points)

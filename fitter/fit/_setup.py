@@ -265,7 +265,8 @@ class Problem:
         if degenerate is not None:
             raise degenerate
         picked = targets.reshape(len(targets), -1, 3)[:, renderer.pixel_index[rows]]
-        usable = np.all(np.isfinite(picked), axis=-1, keepdims=True)
+        with np.errstate(invalid="ignore", over="ignore"):  # as select_pixels
+            usable = np.isfinite(picked @ np.ones(3))[..., None]
         if saturation is not None:
             usable &= np.all(np.where(np.isfinite(picked), picked, 0) < saturation,
                              axis=-1, keepdims=True)

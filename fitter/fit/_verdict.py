@@ -134,7 +134,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
     sd_stat, sd_sys, sd_disc, hac = sd, np.zeros_like(sd), np.zeros_like(sd), None
     if np.all(np.isfinite(cov_z)) and np.any(sd > 0):
         sd, sd_sys, sd_disc, hac = _with_systematic(problem, spec, data, z, cov_z, sd,
-                                                    params, model)
+                                                    params, model, J)
     stderr, stderr_stat, stderr_sys, stderr_disc, coords = {}, {}, {}, {}, []
     for blk, sl in spec.slices():
         if blk.key not in unidentifiable:  # marked ambiguous: no error to give
@@ -208,7 +208,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
 
 
 def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_stat, params,
-                     model):
+                     model, R):
     """(stderr total, systematic, of which discretisation (each (n,)), block info).
 
     Systematic = the significant excess of the spatial-block sandwich
@@ -219,7 +219,8 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     """
     J, r, _ = jac_full(spec, z, data)
     Js = scaled_jacobian(spec, z, J)
-    gram = Js.T @ Js  # the sandwich's and the shifts'
+    Rs = scaled_jacobian(spec, z, R)  # R: J's R factor, so Js^T Js = Rs^T Rs
+    gram = Rs.T @ Rs  # the sandwich's and the shifts'
     pix = np.asarray(problem.renderer.pixel_index)[problem.rows]
     ids, n_blocks = _adequacy.block_ids(pix, problem.renderer.scene.width)
     cov_hac = _adequacy.sandwich(Js, r, ids, n_blocks, gram)
