@@ -34,6 +34,15 @@ def floats(v):
     return float(a) if a.ndim == 0 else [float(x) for x in a.reshape(-1)]
 
 
+def finite_rows(a) -> np.ndarray:
+    """Host array ``a`` (..., c): whether each row's c values are all finite (...),
+    by their sum (a NaN or Inf makes it non-finite): NumPy's ``all`` over a short
+    last axis is 2-10x slower than a product."""
+    a = np.asarray(a, dtype=np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.isfinite(a @ np.ones(a.shape[-1]))
+
+
 def dot(a, b):
     """Dot product over the last axis, keeping no axis: (..., 3) x (..., 3) -> (...)."""
     return jnp.sum(a * b, axis=-1)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._math import finite_rows
+
 
 def estimate_noise(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Per-channel noise standard deviation (3,) from pixels whose 3 x 3
@@ -27,8 +29,7 @@ def estimate_noise(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
             inside &= m[dy:dy + m.shape[0] - 2, dx:dx + m.shape[1] - 2]
     # Sums over the 3 channels and the pixels as products: NumPy's reductions over a
     # last axis of 3 and its boolean picks took 2.5 of 4.7 ms at 256^2.
-    with np.errstate(invalid="ignore"):
-        bad = ~np.isfinite(lap @ np.ones(c))
+    bad = ~finite_rows(lap)
     lap[bad] = 0.0
     inside = inside.reshape(-1) & ~bad
     n = int(np.count_nonzero(inside))

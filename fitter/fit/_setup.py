@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._keep import recent
-from .._math import to_device
+from .._math import finite_rows, to_device
 from ..material import EXPOSURE_KEY, Material
 from ..render import KEEP_BYTES, Renderer, cached_renderer
 from .. import checks
@@ -53,8 +53,7 @@ def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
         if m.shape != (h, w):
             raise FitError(f"mask has shape {m.shape}, expected {(h, w)}")
         chosen = m.reshape(-1)[renderer.pixel_index]
-    with np.errstate(invalid="ignore", over="ignore"):  # a NaN/Inf channel makes the sum one
-        good = np.isfinite(flat @ np.ones(3))
+    good = finite_rows(flat)
     if exclude is not None:
         ex = np.asarray(exclude, dtype=bool)
         if ex.shape != (h, w):
@@ -265,8 +264,7 @@ class Problem:
         if degenerate is not None:
             raise degenerate
         picked = targets.reshape(len(targets), -1, 3)[:, renderer.pixel_index[rows]]
-        with np.errstate(invalid="ignore", over="ignore"):  # as select_pixels
-            usable = np.isfinite(picked @ np.ones(3))[..., None]
+        usable = finite_rows(picked)[..., None]
         if saturation is not None:
             usable &= np.all(np.where(np.isfinite(picked), picked, 0) < saturation,
                              axis=-1, keepdims=True)
