@@ -91,8 +91,9 @@ def test_renders_are_checked_against_memory_too(small, tmp_path, capsys, monkeyp
     monkeypatch.setattr(limits, "available_bytes", lambda: 2e9)
     scene = fitter.Scene(width=1024, height=1024, supersampling=4,
                          lights=(fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),))
+    need = f"{limits.job_bytes('render', 1024, 1024, 4) / 1e9:.1f}"  # the model's estimate
     with pytest.raises(limits.ResourceError,
-                       match=r"^a 1024x1024 render at .* needs about 6\.0 GB .* 2\.0 GB"):
+                       match=rf"^a 1024x1024 render at .* needs about {need} GB .* 2\.0 GB"):
         fitter.render({"lambert.rho_d": 0.5}, scene)
     with pytest.raises(limits.ResourceError, match=r"scene\.supersampling = 40 is over"):
         fitter.render({"lambert.rho_d": 0.5}, scene.replace(width=8, height=8,
