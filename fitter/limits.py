@@ -24,9 +24,9 @@ MAX_SPP = 1 << 16
 #: by (task, whether an environment lights opaque lobes). Measured
 #: (``benchmarks/memory_model.py``, 2026-12-05: lambert + torrance_sparrow, the
 #: shipped "plastic" (2 point lights) and "env_plastic" scenes, fresh processes,
-#: repeated runs differing by up to 8 %) and chosen so that each estimate is 7-40 %
-#: above every measured peak. A fit: point-lit 256^2 x 4^2 samples 1.05 GB,
-#: 1024^2 x 4^2 5.4-6.0 GB; env-lit 128^2 x 4^2 1.7 GB, 128^2 x 8^2 3.4 GB,
+#: repeated runs differing by up to 8 %) and chosen so that each estimate is 5-40 %
+#: above every measured peak. A fit: point-lit 256^2 x 4^2 samples 1.05-1.09 GB,
+#: 1024^2 x 4^2 5.4-6.2 GB; env-lit 128^2 x 4^2 1.6-1.7 GB, 128^2 x 8^2 3.4-3.5 GB,
 #: 512^2 x 4^2 11.8 GB (the sky table per env sample, the sun's cells per
 #: highlight sample and the finer model of the stated errors). A render:
 #: point-lit 1024^2 x 4^2 5.3-5.5 GB (5.5 since the lights' samples carry their

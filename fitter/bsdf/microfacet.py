@@ -23,7 +23,7 @@ M_MIN = 1e-4
 
 # Divisions by a function of m are written as products with its reciprocal,
 # taken once per call: the Jacobian's renders are bound by per-sample divisions
-# (256^2 plastic: Jacobian 49 -> 44 CPU-ms, the whole fit 0.128 -> 0.119 s).
+# (benchmarks/README.md, "fourth stop" of 2026-12-05).
 
 
 def beckmann_d_lecture(cos_h, tan2_h, m):
