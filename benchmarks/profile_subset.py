@@ -5,15 +5,22 @@ Cases: 256^2 plastic (lambert + torrance_sparrow, 4x4 samples, JAX target at
 the truth + noise sigma 2e-3, from the lobe defaults), the 128^2 dielectric
 (``configs/dielectric.toml`` on its Mitsuba target, from the config's start)
 and, by ``--cases``, the four env cases (``configs/env_*.toml``, Mitsuba
-targets) and three sharp highlights (``_sharp``: Beckmann m = 0.05 and 0.02
-at 128^2, 0.01 at 192^2). Each case is fitted once (compiling everything), the profile's
+targets), three sharp highlights (``_sharp``: Beckmann m = 0.05 and 0.02
+at 128^2, 0.01 at 192^2), a gold conductor at 128^2 (``_metal``) and, by
+their names, the shipped point-lit configs (quickstart, lambert, ...,
+extreme_*). Each case is fitted once (compiling everything), the profile's
 inputs are captured at the fit's solution, then the profile runs ``--repeat``
 times each way, interleaved; the line gives the minima, the verdicts and the
 largest |estimated - whole-image| chi^2 rise over the points, also in the
-subset's guarded standard errors (``_profile.GUARD`` applies to these). Then
+subset's guarded standard errors (``_profile.GUARD`` applies to these), and
+how many points the guard sent to every pixel. Then
 whole ``fitter.fit`` calls, subset on and off interleaved (minima).
 
-    python benchmarks/profile_subset.py [--repeat 5] [--cases "env_plastic 128²" ...]
+    python benchmarks/profile_subset.py [--repeat 5] [--cases "env_plastic 128²" ...] [--float64]
+
+``--float64``: the subset's residuals in float64 (``_profile.SINGLE`` off;
+float32 is the default where every lobe has ``single_precision``, and never
+under environment samples).
 """
 
 from __future__ import annotations
@@ -60,6 +67,20 @@ def _sharp(m: float, res: int):
     return lambda: fitter.fit(target, scene, material, init=truth)
 
 
+def _metal(res: int):
+    """A gold conductor (``configs/metal_gold.toml``'s material and lights) at
+    res^2, JAX target at the truth + noise sigma 2e-3, fitted from the truth."""
+    import fitter
+    from fitter import config
+
+    job = config.load_config(os.path.join(ROOT, "configs/metal_gold.toml"))
+    scene = job.scene.replace(width=res, height=res)
+    truth = job.material.full_params({**job.fixed, **job.truth})
+    clean = np.asarray(fitter.render(truth, scene, job.material))
+    target = clean + np.random.default_rng(0).normal(0.0, 2e-3, clean.shape)
+    return lambda: fitter.fit(target, scene, job.material, init=job.truth, fixed=job.fixed)
+
+
 def _config(case: str):
     """A shipped config's fit (its Mitsuba target, from the config's start)."""
     import fitter
@@ -97,14 +118,23 @@ def rises(args, subset: bool):
         seen["se"] = out[1]
         return out
 
+    whole = _compile.costs_at
+
+    def spy_whole(spec, zs, data):
+        seen["whole"] = seen.get("whole", 0) + len(zs)
+        return whole(spec, zs, data)
+
     _identify.profile_verdict = spy
     _profile.estimated_rises = spy_se
+    _compile.costs_at = spy_whole
     try:
         why, _, sec = _identify.weak_profile(*args)
     finally:
         _identify.profile_verdict = verdict
         _profile.estimated_rises = estimate
+        _compile.costs_at = whole
         _profile.ENABLED = True
+    rises.whole = seen.get("whole", 0)
     return seen.get("rise", np.zeros(0)), seen.get("se"), why, sec
 
 
@@ -112,17 +142,28 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--cases", nargs="*", default=["plastic 256²", "dielectric 128²"])
+    ap.add_argument("--float64", action="store_true",
+                    help="the subset's residuals in float64 (``_profile.SINGLE`` off)")
     args = ap.parse_args(argv)
 
     from fitter.fit import _drivers, _profile
+
+    _profile.SINGLE = not args.float64
 
     makers = {"plastic 256²": _plastic,
               "sharp m=0.05 128²": functools.partial(_sharp, 0.05, 128),
               "sharp m=0.02 128²": functools.partial(_sharp, 0.02, 128),
               "sharp m=0.01 192²": functools.partial(_sharp, 0.01, 192),
+              "metal 128²": functools.partial(_metal, 128),
               **{f"{c} 128²": functools.partial(_config, c)
                  for c in ("dielectric", "env_plastic", "env_phong", "env_oren_nayar",
-                           "env_point")}}
+                           "env_point")},
+              # (by the config's name: its own size)
+              **{c: functools.partial(_config, c)
+                 for c in ("quickstart", "lambert", "oren_nayar", "phong", "torrance_sparrow",
+                           "plastic", "plastic_vgroove", "oren_nayar_phong", "bright_phong",
+                           "metal_gold", "extreme_sharp_phong", "extreme_sharp_ts",
+                           "extreme_grazing", "extreme_low_eta", "extreme_sigma0")}}
     for name in args.cases:
         run = makers[name]()
         captured: list = []
@@ -148,7 +189,7 @@ def main(argv=None) -> int:
                 rise, se, why, sec = rises(a, subset)
                 times[subset].append(sec)
                 if subset:
-                    est, se_sub, why_sub = rise, se, why
+                    est, se_sub, why_sub, redone = rise, se, why, rises.whole
                 else:
                     full, why_full = rise, why
         fits = {True: [], False: []}
@@ -171,7 +212,7 @@ def main(argv=None) -> int:
               f"x{min(times[False]) / min(times[True]):.1f}; verdict {why_full!r} / "
               f"{why_sub!r}; max |rise est - rise| {np.max(np.abs(est - full)):.3g} "
               f"(rises {np.min(full):.3g}..{np.max(full):.3g}; {guarded:.2f} guarded standard "
-              f"errors); fitter.fit min "
+              f"errors; {redone} points on every pixel); fitter.fit min "
               f"{min(fits[False]):.3f} -> {min(fits[True]):.3f} s; fitted values equal: {same}")
     load = os.getloadavg()
     print(f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores")

@@ -28,6 +28,14 @@ def to_device(a, dtype=None):
     return jax.device_put(np.asarray(a, dtype=dtype))
 
 
+def single(tree):
+    """``tree`` with its floating arrays as float32 (inside a traced function:
+    after any gather, so only the picked elements are converted)."""
+    return jax.tree_util.tree_map(
+        lambda a: jnp.asarray(a, jnp.float32)
+        if jnp.issubdtype(jnp.result_type(a), jnp.floating) else a, tree)
+
+
 def floats(v):
     """``v`` (number or array) as a Python float, or a flat list of floats (for JSON)."""
     a = np.asarray(v, dtype=np.float64)

@@ -252,3 +252,111 @@ def test_under_a_sky_the_profile_is_compiled_ahead_and_states_the_same(tmp_path,
     for part in ("params", "stderr", "stderr_sys", "stderr_disc"):
         for key in truth:
             np.testing.assert_array_equal(getattr(first, part)[key], getattr(again, part)[key])
+
+
+def test_float32_error_measured_at_z_is_taken_off():
+    """Linear residuals whose subset values carry a fixed error d per residual
+    (float32's, the same at every point): measured at the centre (``centre``:
+    the residuals at z + dz_c and dz_c) and taken off, the estimated rises are
+    the closed form 0.5 |r + J dz|^2 again; the standard errors then hold only
+    what may be left of d, so they are 0 without it and double with 2 d."""
+    rng = np.random.default_rng(3)
+    P, n, k = 300, 3, 9
+    J, r = rng.normal(size=(3 * P, n)), rng.normal(size=3 * P)
+    dzs = rng.normal(size=(k, n))
+    rows, weight = _profile.subset_rows(np.where(rng.random(P) < 0.2, 1, 0), stride=4)
+    idx = (3 * rows[:, None] + np.arange(3)).reshape(-1)
+    full = r[None] + dzs @ J.T
+    exact = (np.sum(full * full, axis=1) - r @ r) / 0.5
+    dz_c = 1e-7 * rng.normal(size=n)  # the centre moved by its parameters' rounding
+    d1, ses = 1e-6 * rng.normal(size=idx.size), []
+    for scale in (0.0, 1.0, 2.0):
+        d = scale * d1
+        centre = (r[idx] + J[idx] @ dz_c + d, dz_c)
+        rise, se = _profile.estimated_rises(J, r, dzs, full[:, idx] + d, rows, weight, 0.5,
+                                            centre=centre)
+        np.testing.assert_allclose(rise, exact, rtol=1e-9, atol=1e-9)
+        ses.append(se)
+    np.testing.assert_allclose(ses[0], 0.0, atol=1e-9 * np.abs(exact).max())
+    assert np.all(ses[1] > 0)
+    np.testing.assert_allclose(ses[2], 2.0 * ses[1], rtol=1e-6)
+
+
+def test_single_coordinates_are_where_float32_puts_the_values():
+    """Each point's coordinates moved so that its user values are the float32
+    rounding of the original ones (reference: NumPy's float32 cast), to second
+    order in the move (~1e-15 relative), for the logit, log and eta boxes."""
+    from fitter import transforms
+    from fitter.fit import _setup
+
+    scene = fitter.Scene(width=16, height=16, supersampling=1, lights=LIGHTS)
+    mat = fitter.Material.make("lambert+torrance_sparrow")
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "torrance_sparrow.m": 0.2,
+             "torrance_sparrow.eta": 1.5}
+    problem = _setup.Problem.make(np.asarray(fitter.render(truth, scene, mat))[None], scene, mat)
+    spec = problem.spec
+    zs = problem.z_init()[None] + np.random.default_rng(4).normal(0.0, 1.0, (5, spec.n))
+    moved = _problem_single(spec, zs)
+    assert {b.transform for b in spec.blocks} >= {"logit", "log", "eta"}
+    for b, sl in spec.slices():
+        x = transforms.to_user(b.transform, zs[:, sl], b.lower, b.upper)
+        x_moved = transforms.to_user(b.transform, moved[:, sl], b.lower, b.upper)
+        np.testing.assert_allclose(x_moved, x.astype(np.float32).astype(np.float64),
+                                   rtol=1e-14, atol=0, err_msg=b.key)
+        assert np.any(x_moved != x)
+
+
+def _problem_single(spec, zs):
+    from fitter.fit._problem import single_coordinates
+
+    return single_coordinates(spec, zs)
+
+
+@pytest.mark.parametrize("lobes, single", [("lambert+torrance_sparrow", True),
+                                           ("lambert+phong", False)])
+def test_subset_in_float32_only_for_single_precision_lobes(monkeypatch, lobes, single):
+    """The subset's residuals are float32's for lobes with ``single_precision``
+    (Torrance-Sparrow), float64's with Phong (whose cos^e float32 rounds by e
+    times cos's error); either way the fit's profile states no re-solve on a
+    smooth noisy target."""
+    monkeypatch.setattr(_profile, "MIN_PIXELS", 0)
+    seen = []
+    real = _compile.residuals_of_rows
+    def spy(*a, **k):
+        seen.append(a[4] if len(a) > 4 else False)
+        return real(*a, **k)
+
+    monkeypatch.setattr(_compile, "residuals_of_rows", spy)
+    scene = fitter.Scene(width=64, height=64, supersampling=2, lights=LIGHTS)
+    mat = fitter.Material.make(lobes)
+    truth = ({"lambert.rho_d": [0.5, 0.4, 0.3], "torrance_sparrow.m": 0.2}
+             if "torrance" in lobes else {"lambert.rho_d": [0.5, 0.4, 0.3], "phong.e": 50.0})
+    clean = np.asarray(fitter.render(truth, scene, mat))
+    target = clean + np.random.default_rng(0).normal(0.0, 0.01 * clean.mean(), clean.shape)
+    res = fitter.fit(target, scene, mat)
+    assert res.status == "converged", res.message
+    assert seen == [single], seen
+    assert len(res.starts) == 1
+
+
+def test_points_padded_to_whole_batches_are_each_points_residuals(monkeypatch):
+    """7 points at 3 a batch are evaluated as 3 x 3 (the last padded: no second
+    body for a remainder); each row equals that point evaluated alone
+    (reference: ``residuals_at_points`` of one point)."""
+    import jax
+
+    from fitter.fit import _setup
+
+    scene = fitter.Scene(width=24, height=24, supersampling=2, lights=LIGHTS)
+    mat = fitter.Material.make("lambert+torrance_sparrow")
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "torrance_sparrow.m": 0.2}
+    problem = _setup.Problem.make(np.asarray(fitter.render(truth, scene, mat))[None], scene, mat)
+    data = problem.data(0)
+    size = sum(np.size(a) for a in jax.tree_util.tree_leaves(data.geometry))
+    monkeypatch.setattr(_compile, "MAP_BATCH_ELEMENTS", 3 * size + 1)
+    zs = problem.z_init()[None] + np.linspace(-0.3, 0.3, 7)[:, None]
+    batched = _compile.residuals_at_points(problem.spec, zs, data)
+    assert batched.shape == (7, np.size(data.target))
+    for z, row in zip(zs, batched):
+        alone = _compile.residuals_at_points(problem.spec, z[None], data)[0]
+        np.testing.assert_allclose(row, alone, rtol=1e-12, atol=1e-15)

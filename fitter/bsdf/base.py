@@ -297,6 +297,9 @@ class Lobe:
         transmissive: light passes through the sphere (refraction), so what
             the lobe shows depends on the sphere's interior.
         doc: the model in one line (the README's lobe table shows it).
+        single_precision: its values in float32 are near enough float64's for
+            the post-fit profile's estimates (``fitter.fit._profile.SINGLE``:
+            a speed choice, its error measured there either way).
         mitsuba: its Mitsuba 3 equivalent (``fitter.bsdf.mitsuba_map``).
         hints: what the property tests need (``Hints``).
     """
@@ -315,6 +318,7 @@ class Lobe:
     doc: str = ""
     mitsuba: MitsubaMapping | None = None
     transmissive: bool = False
+    single_precision: bool = True
     hints: Hints = Hints()
     variants: Mapping[tuple[str, Any], tuple[Param, ...]] = dataclasses.field(
         default_factory=dict, compare=False)

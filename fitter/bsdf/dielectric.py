@@ -321,6 +321,7 @@ LOBE = Lobe(
     doc="Fresnel reflection + Snell refraction through the sphere, total internal reflection, "
         "η² radiance scaling (cancels on a full pass), Beer-Lambert c^d with d in world units",
     transmissive=True,
+    single_precision=False,  # 16 of 30 profile points to float64 (benchmarks/profile_subset.py)
     mitsuba=MitsubaMapping(
         _mitsuba,
         interior=lambda p, opts: absorbing_medium(p["attenuation"]),

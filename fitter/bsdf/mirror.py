@@ -30,5 +30,6 @@ LOBE = Lobe(
     scale="rho_m",  # the radiance is linear in it (the exposure check's reflectance scale)
     radiance=_radiance,
     doc="ρ_m L_env(reflected direction)",
+    single_precision=False,  # reflected rays into the map, as the dielectric's: not measured
     mitsuba=MitsubaMapping(_mitsuba, max_depth=lambda opts: MITSUBA_DEPTH),
 )

@@ -92,27 +92,33 @@ MAP_BATCH_ELEMENTS = 2 * 10**7
 SKY_BATCH = 6
 
 
-def residuals_at(spec: Spec, zs, data):
+def residuals_at(spec: Spec, zs, data, single: bool = False):
     """Residuals (k, N) at each point of ``zs`` (k, n), a few points at a time
     (``lax.map``: ``SKY_BATCH`` with a sky table, else ``MAP_BATCH_ELEMENTS``;
-    no Jacobian)."""
+    no Jacobian). ``single``: the model in float32 (``residuals``'; ``_profile``'s
+    estimates)."""
     if data.geometry.has_sky:
         batch = SKY_BATCH
     else:
         size = sum(np.size(a) for a in jax.tree_util.tree_leaves(data.geometry))
         batch = MAP_BATCH_ELEMENTS // max(size, 1)
-    batch = int(max(1, min(zs.shape[0], batch)))
-    return jax.lax.map(lambda z: residuals(z, data, spec), zs,
-                       batch_size=batch if batch > 1 else None)
+    k = zs.shape[0]
+    loops = -(-k // int(max(1, min(k, batch))))
+    batch = -(-k // loops)
+    # Padded with copies of the last point to loops x batch: lax.map compiles a
+    # second body for a remainder.
+    zs = jnp.concatenate([zs, jnp.broadcast_to(zs[-1:], (loops * batch - k, zs.shape[1]))])
+    return jax.lax.map(lambda z: residuals(z, data, spec, single), zs,
+                       batch_size=batch if batch > 1 else None)[:k]
 
 
-def residuals_at_rows(spec: Spec, zs, data, rows):
+def residuals_at_rows(spec: Spec, zs, data, rows, single: bool = False):
     """``residuals_at`` on the fitted pixels ``rows`` (M,) only, (k, 3M):
     picked inside the executable (``Geometry.take``), not copied on the host
     (~20 ms of a compiled 256^2 fit's profile)."""
     data = data._replace(geometry=data.geometry.take(rows), target=data.target[rows],
                          weights=data.weights[rows])
-    return residuals_at(spec, zs, data)
+    return residuals_at(spec, zs, data, single)
 
 
 def gauss_newton_step(spec: Spec, z, data):
@@ -208,9 +214,9 @@ def _function(kind: str, spec: Spec, static: dict):
     if kind == "gauss_newton":
         return functools.partial(gauss_newton_step, spec)
     if kind == "residuals":
-        return functools.partial(residuals_at, spec)
+        return functools.partial(residuals_at, spec, **static)
     if kind == "rows":
-        return functools.partial(residuals_at_rows, spec)
+        return functools.partial(residuals_at_rows, spec, **static)
     return functools.partial(jacobian_r, spec)  # the Jacobian (as its R factor) and residuals
 
 
@@ -336,19 +342,26 @@ def jac_res(spec: Spec, z, data, once: bool = False):
     return r_factor(R), np.asarray(r, dtype=np.float64), tc
 
 
-def residuals_at_points(spec: Spec, zs, data) -> np.ndarray:
-    """Residuals (k, N) at each point of ``zs`` (k, n), float64 on the host."""
+def residuals_at_points(spec: Spec, zs, data, single: bool = False) -> np.ndarray:
+    """Residuals (k, N) at each point of ``zs`` (k, n), float64 on the host
+    (``single``: evaluated in float32, as ``residuals_at``)."""
     zs = jnp.asarray(zs, dtype=data.target.dtype)
-    exe, _ = compiled("residuals", spec, (zs, data))
+    exe, _ = compiled("residuals", spec, (zs, data), **_single(single))
     return np.asarray(exe(zs, data), dtype=np.float64)
 
 
-def residuals_of_rows(spec: Spec, zs, data, rows) -> np.ndarray:
+def residuals_of_rows(spec: Spec, zs, data, rows, single: bool = False) -> np.ndarray:
     """Residuals (k, 3M) of the fitted pixels ``rows`` (M,) at each point of
-    ``zs`` (k, n), float64 on the host (``residuals_at_rows``)."""
+    ``zs`` (k, n), float64 on the host (``residuals_at_rows``; ``single``: as
+    ``residuals_at``)."""
     zs, rows = jnp.asarray(zs, dtype=data.target.dtype), to_device(np.asarray(rows))
-    exe, _ = compiled("rows", spec, (zs, data, rows))
+    exe, _ = compiled("rows", spec, (zs, data, rows), **_single(single))
     return np.asarray(exe(zs, data, rows), dtype=np.float64)
+
+
+def _single(single: bool) -> dict:
+    # (no key entry when off: the float64 executables keep their keys)
+    return {"single": True} if single else {}
 
 
 def costs_at(spec: Spec, zs, data) -> np.ndarray:

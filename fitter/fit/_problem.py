@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import transforms
+from .._math import single as to_single
 from ..environment import EnvData
 from ..geometry import Geometry
 from ..material import Material
@@ -131,6 +132,19 @@ def frame(spec: Spec, z):
     return tuple(np.concatenate([np.atleast_1d(p[i]) for p in parts]) for i in range(4))
 
 
+def single_coordinates(spec: Spec, zs) -> np.ndarray:
+    """Coordinates (k, n) of the points ``zs`` (k, n) whose user values are
+    theirs rounded to float32 (``residuals``' ``single``), to first order:
+    z + (x32 - x) / (dx/dz); unchanged where dx/dz is 0 (a saturated z)."""
+    zs = np.array(zs, dtype=np.float64)
+    for b, sl in spec.slices():
+        x = transforms.to_user(b.transform, zs[:, sl], b.lower, b.upper)
+        d = transforms.derivative(b.transform, zs[:, sl], b.lower, b.upper)
+        dx = x.astype(np.float32).astype(np.float64) - x
+        zs[:, sl] += np.where(d > 0, dx / np.where(d > 0, d, 1.0), 0.0)
+    return zs
+
+
 def blocks_of(spec: Spec, flags: np.ndarray) -> list[str]:
     """Keys of the blocks with any of their coordinates flagged in ``flags`` (n,)."""
     return [b.key for b, sl in spec.slices() if np.any(flags[sl])]
@@ -155,10 +169,16 @@ def robust(r, loss: str, scale: float):
     return r * jnp.sqrt(jnp.where(small, 1.0, factor))
 
 
-def residuals(z, data: Data, spec: Spec):
-    """Weighted (robust) residuals (model - target), flattened to (P*3,)."""
+def residuals(z, data: Data, spec: Spec, single: bool = False):
+    """Weighted (robust) residuals (model - target), flattened to (P*3,).
+
+    ``single``: the model rendered in float32 from the parameters' values
+    rounded to float32 (``single_coordinates`` says where that puts z), the
+    rest as ``data``'s dtype."""
     params = params_from_z(spec, z, data.fixed)
-    model = render_active(params, data.geometry, data.env, data.sphere,
-                          material=spec.material, env_type=spec.env_type)
-    r = (model - data.target) * data.weights
+    scene = (params, data.geometry, data.env, data.sphere)
+    if single:
+        scene = to_single(scene)
+    model = render_active(*scene, material=spec.material, env_type=spec.env_type)
+    r = (model.astype(data.target.dtype) - data.target) * data.weights
     return robust(r, spec.loss, spec.loss_scale).reshape(-1)

@@ -30,6 +30,17 @@ from .._math import to_device
 
 #: The subset on (benchmarks/profile_subset.py compares it with every pixel).
 ENABLED = True
+#: The subset's residuals in float32 (256^2 plastic's profile points 14.5 -> 9.0
+#: ms in a compiled fit, one point more), float32's error measured at z and taken off
+#: (``estimated_rises``' ``centre``); a point where that leaves the verdict in
+#: doubt (``GUARD``) or float32 is not finite is evaluated in float64 on every
+#: pixel. Not under environment samples (their subset is compiled ahead,
+#: ``ahead``) nor for a lobe without ``single_precision`` (where float32's error
+#: sends many points to every pixel: the 128^2 dielectric's profile 0.26 ->
+#: 1.14 s). ``benchmarks/profile_subset.py``, the estimates' largest errors in
+#: guarded standard errors, float64 -> float32: 256^2 plastic 0.92 -> 0.93,
+#: the quickstart 0.18 -> 0.70, sharp Beckmann m = 0.01 0.72 -> 0.52.
+SINGLE = True
 #: Below this many fitted pixels the profile runs on all of them (the subset
 #: would save little and cost a compile of its own).
 MIN_PIXELS = 4096
@@ -195,13 +206,20 @@ def _made_ahead(data, rows):
     return made[2]
 
 
-def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float, grad=None, gram=None):
+def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float, grad=None, gram=None,
+                    centre=None):
     """(estimated chi^2 rises (k,), their standard errors (k,)) at z + dz.
 
     ``J`` (N, n), ``r`` (N,): the whole Jacobian and residuals at z (3 per
     pixel, channel fastest); ``dzs`` (k, n); ``r_sub`` (k, 3M): the residuals
     of the pixels ``rows`` (M,) at each point, ``weight`` (M,) theirs;
     ``grad``, ``gram``: J^T r and J^T J (= R^T R) where the caller has them.
+    ``centre``: where ``r_sub`` is float32's (``residuals``' ``single``), (its
+    residuals (3M,) at z + dz_c, dz_c (n,)), ``dzs`` and dz_c the points' own
+    (``single_coordinates``). The residuals' difference from the linearised
+    ones there, d, is float32's own error: taken off every point, and what may
+    be left of it (up to sqrt(2) |d| a residual, as if independent between
+    points and pixels) moves e_p by r_sub . d, which the standard errors include.
     """
     J = np.asarray(J, dtype=np.float64)
     r = np.asarray(r, dtype=np.float64)
@@ -211,8 +229,13 @@ def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float, grad=None, gram=N
     # The whole quadratic (k,) from J^T r and J^T J: no (k, N) array.
     quad = dzs @ grad + 0.5 * np.einsum("ki,ij,kj->k", dzs, gram, dzs)
     idx = (3 * rows[:, None] + np.arange(3)).reshape(-1)
-    r0, lin = r[idx], dzs @ J[idx].T
+    J_sub = J[idx]
+    r0, lin = r[idx], dzs @ J_sub.T
     k = len(dzs)
+    off = None
+    if centre is not None:
+        off = centre[0] - r0 - J_sub @ centre[1]
+        r_sub = r_sub - off
     # Per picked pixel: the rise minus its quadratic part, e_p (k, M).
     lin += r0  # the linearised residuals at each point
     # (r_sub - lin)(r_sub + lin), not r_sub^2 - lin^2 (they nearly cancel), in two
@@ -223,6 +246,9 @@ def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float, grad=None, gram=N
     e = e.reshape(k, -1, 3) @ np.full(3, 0.5)  # (k, M); NumPy's sum over 3 is ~10x slower
     rest = e @ weight
     var = (e * e) @ (weight * np.maximum(weight - 1.0, 0.0))
+    if off is not None:
+        u = np.abs(r_sub * off).reshape(k, -1, 3) @ np.ones(3)  # (k, M)
+        var += 2.0 * ((u * u) @ (weight * weight))
     return 2.0 * (quad + rest) / s2, 2.0 * np.sqrt(var) / s2
 
 
@@ -242,6 +268,7 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     (too few pixels, or no whole Jacobian ``J``). ``grad``, ``gram``: as
     ``estimated_rises``'."""
     from ._compile import costs_at, residuals_at_points, residuals_of_rows
+    from ._problem import single_coordinates
 
     if (not ENABLED or J is None or np.shape(J)[0] != np.size(r)
             or np.shape(data.target)[0] < MIN_PIXELS):
@@ -252,15 +279,30 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     if picks is None:
         return None
     rows, weight = picks
-    if data.geometry.has_env_samples:  # their rows are remapped on the host
-        r_sub = residuals_at_points(spec, zs, subset_data(data, rows, _made_ahead(data, rows)))
+    env = data.geometry.has_env_samples
+    single = (SINGLE and not env and np.dtype(data.target.dtype) == np.float64
+              and all(lb.single_precision for lb in spec.material.lobe_objects))
+    at = np.concatenate([zs, np.asarray(z, dtype=np.float64)[None]]) if single else zs
+    if env:  # their rows are remapped on the host
+        r_at = residuals_at_points(spec, at, subset_data(data, rows, _made_ahead(data, rows)),
+                                   single)
     else:
-        r_sub = residuals_of_rows(spec, zs, data, rows)
-    rise, se = estimated_rises(J, r, dzs, r_sub, rows, weight, s2, grad, gram)
+        r_at = residuals_of_rows(spec, at, data, rows, single)
+    r_sub, centre = r_at, None
+    if single:  # the points float32 evaluated
+        moved = single_coordinates(spec, at) - np.asarray(z, dtype=np.float64)
+        dzs, r_sub, centre = moved[:-1], r_at[:-1], (r_at[-1], moved[-1])
+    rise, se = estimated_rises(J, r, dzs, r_sub, rows, weight, s2, grad, gram, centre)
     costs = cost + 0.5 * s2 * rise
-    costs[~np.all(np.isfinite(r_sub), axis=1)] = np.nan  # a subset pixel's NaN is the image's
+    finite = np.isfinite(r_sub @ np.ones(r_sub.shape[1]))
+    if single:  # float32's NaN or overflow may not be the image's: evaluated again
+        finite &= bool(np.all(np.isfinite(centre[0])))
+        costs[~finite] = np.inf
+    else:
+        costs[~finite] = np.nan  # a subset pixel's NaN is the image's
     redo = [i for i, (t, _) in enumerate(points)
-            if np.isfinite(costs[i]) and near_threshold(t, rise[i], se[i], level, flat)]
+            if (single and not np.isfinite(costs[i]))
+            or (np.isfinite(costs[i]) and near_threshold(t, rise[i], se[i], level, flat))]
     if redo:
         costs[redo] = costs_at(spec, zs[redo], data)
     return costs
