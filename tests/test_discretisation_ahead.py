@@ -90,9 +90,9 @@ def test_under_a_sky_the_renders_made_ahead_are_the_ones_used(tmp_path, monkeypa
     compiled_on = []
     compile_render = _renders.compile_render
 
-    def recorded(args, material, env_type, key):
+    def recorded(args, material, env_type, key, single=False):
         compiled_on.append(threading.current_thread().name)
-        return compile_render(args, material, env_type, key)
+        return compile_render(args, material, env_type, key, single)
 
     monkeypatch.setattr(_renders, "compile_render", recorded)
     monkeypatch.setattr(_discretisation, "_GEOMETRIES", {})
@@ -100,3 +100,29 @@ def test_under_a_sky_the_renders_made_ahead_are_the_ones_used(tmp_path, monkeypa
     res = fitter.fit(target, scene, "lambert+torrance_sparrow")
     assert res.status == "converged"
     assert compiled_on == ["fitter-finer-geometry"] * 4
+
+
+def test_finer_model_in_float32_states_the_float64_errors(monkeypatch):
+    """The finer model rendered in float32 (``_discretisation.SINGLE``, its
+    geometry kept in float32) gives stated errors within 1e-3 of float64's
+    (its rounding, ~1e-7 of the values, against a discretisation error
+    ~1e-4 of them; the parameters' own rounding taken off,
+    ``rounding_move``), the same values and verdict; a material with Phong
+    (no ``single_precision``) renders it in float64."""
+    target = np.asarray(fitter.render(GLOSSY, SCENE.replace(supersampling=16)))
+    target = target + np.random.default_rng(0).normal(0.0, 1e-3, target.shape)
+    out = {}
+    for single in (False, True):
+        monkeypatch.setattr(_discretisation, "SINGLE", single)
+        monkeypatch.setattr(_discretisation, "_GEOMETRIES", {})
+        out[single] = fitter.fit(target, SCENE, "lambert+torrance_sparrow")
+    a, b = out[False], out[True]
+    assert a.status == b.status == "converged" and a.warnings == b.warnings
+    for key in GLOSSY:
+        np.testing.assert_array_equal(a.params[key], b.params[key])
+        np.testing.assert_allclose(b.stderr[key], a.stderr[key], rtol=1e-3, err_msg=key)
+        assert np.all(np.asarray(b.stderr_disc[key]) > 0)
+    phong = fitter.Material.make("lambert+phong")
+    assert _discretisation.single(fitter.Material.make("lambert+torrance_sparrow"), False)
+    assert not _discretisation.single(phong, False)
+    assert not _discretisation.single(fitter.Material.make("lambert+torrance_sparrow"), True)

@@ -237,6 +237,9 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     coarse = model - sky_term  # the model without its sky term
     finer[rows], coverage[rows] = _discretisation.finer_values(problem, params, rows,
                                                                coarse[rows])
+    move = _discretisation.rounding_move(problem, z)
+    if move is not None:  # its parameters rounded to float32: not a discretisation error
+        finer[rows] -= (J @ move).reshape(-1, 3)[rows]
     # The sky term (not refined) over the part of the pixel the finer samples
     # see on the sphere: finer = finer lights + background + sky x coverage.
     seen = np.asarray(data.geometry.hit, dtype=np.float64) @ np.asarray(
