@@ -105,10 +105,9 @@ def test_under_a_sky_the_renders_made_ahead_are_the_ones_used(tmp_path, monkeypa
 def test_finer_model_in_float32_states_the_float64_errors(monkeypatch):
     """The finer model rendered in float32 (``_discretisation.SINGLE``, its
     geometry kept in float32) gives stated errors within 1e-3 of float64's
-    (its rounding, ~1e-7 of the values, against a discretisation error
-    ~1e-4 of them; the parameters' own rounding taken off,
-    ``rounding_move``), the same values and verdict; a material with Phong
-    (no ``single_precision``) renders it in float64."""
+    (its rounding, ~1e-7 of the values and ~3e-8 of the parameters, against a
+    discretisation error ~1e-4 of them), the same values and verdict; a
+    material with Phong (no ``single_precision``) renders it in float64."""
     target = np.asarray(fitter.render(GLOSSY, SCENE.replace(supersampling=16)))
     target = target + np.random.default_rng(0).normal(0.0, 1e-3, target.shape)
     out = {}

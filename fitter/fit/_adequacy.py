@@ -52,10 +52,25 @@ RIM_COS = 0.3
 REGIONS = ("body", "highlight", "rim")
 
 
-#: The last geometry's labels (``pixel_regions``): a fit asks twice (region
-#: statistics, discretisation rows) and a repeated fit of one problem shares
-#: its geometry object (``_setup._fitted_geometry`` is cached).
-_LAST_REGIONS: list = []
+#: What the last fitted geometry alone determines ([geometry, {name: value}],
+#: ``of_geometry``): a fit asks for some twice and a repeated fit of one problem
+#: shares its geometry object (``_setup._fitted_geometry`` is cached).
+_LAST: list = [None, {}]
+
+
+def of_geometry(geometry, name: str, make):
+    """``make()``, a value that depends on the fitted ``geometry`` alone (its
+    arrays read-only), kept with the last geometry's others under ``name``."""
+    if _LAST[0] is not geometry:
+        _LAST[:] = [geometry, {}]
+    kept = _LAST[1]
+    if name not in kept:
+        value = make()
+        for a in value if isinstance(value, tuple) else (value,):
+            if isinstance(a, np.ndarray):
+                a.flags.writeable = False
+        kept[name] = value
+    return kept[name]
 
 
 def pixel_regions(geometry) -> np.ndarray:
@@ -63,12 +78,7 @@ def pixel_regions(geometry) -> np.ndarray:
 
     Depends on the geometry alone (not on the parameters); the last one's
     labels are kept (as read-only), measured 13-30 ms each at 256^2."""
-    if _LAST_REGIONS and _LAST_REGIONS[0] is geometry:
-        return _LAST_REGIONS[1]
-    label = _regions(geometry)
-    label.flags.writeable = False
-    _LAST_REGIONS[:] = [geometry, label]
-    return label
+    return of_geometry(geometry, "regions", lambda: _regions(geometry))
 
 
 def _regions(geometry) -> np.ndarray:

@@ -63,9 +63,10 @@ def chord_step(R, J, r0, r1, z1, dz, cost: float, rtol: float, atol: float):
     dz1 = -np.linalg.solve(R.T @ R, J.T @ r1)
     if not (0.5 * float(r1 @ r1) <= cost and settled(z1, dz1, rtol, atol)):
         return None
-    age = 2.0 * float(np.linalg.norm(r1 - r0 - J @ dz)) * float(np.linalg.norm(dz1))
+    Jd = J @ np.stack([dz, dz1], axis=1)  # one pass over J for both
+    age = 2.0 * float(np.linalg.norm(r1 - r0 - Jd[:, 0])) * float(np.linalg.norm(dz1))
     age /= max(float(np.linalg.norm(dz)), 1e-300)
-    return dz1 if age <= CHORD_RTOL * float(np.linalg.norm(r1 + J @ dz1)) else None
+    return dz1 if age <= CHORD_RTOL * float(np.linalg.norm(r1 + Jd[:, 1])) else None
 
 
 def eligible(scene, *, mask, exclude, weights, saturation, loss, dtype, n_starts) -> bool:
@@ -99,7 +100,7 @@ def solve(problem: Problem, target, z0s, data, solve_starts, say):
     coarse_scene = scene.replace(width=w, height=h, supersampling=scene.supersampling // 2)
     try:
         coarse = Problem.make(small[None], coarse_scene, problem.material,
-                              dtype=problem.dtype, base_dir=problem.base_dir)
+                              dtype=problem.dtype, base_dir=problem.base_dir, estimate=False)
     except Exception:  # noqa: BLE001 (e.g. no interior pixel at half size: solve directly)
         return None
     coarse = dataclasses.replace(coarse, init_full=problem.init_full, blocks=problem.blocks,

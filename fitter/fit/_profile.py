@@ -219,7 +219,8 @@ def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float, grad=None, gram=N
     (``single_coordinates``). The residuals' difference from the linearised
     ones there, d, is float32's own error: taken off every point, and what may
     be left of it (up to sqrt(2) |d| a residual, as if independent between
-    points and pixels) moves e_p by r_sub . d, which the standard errors include.
+    points and pixels) moves e_p by up to |r_sub,p| |d_p|, which the standard
+    errors include.
     """
     J = np.asarray(J, dtype=np.float64)
     r = np.asarray(r, dtype=np.float64)
@@ -232,23 +233,25 @@ def estimated_rises(J, r, dzs, r_sub, rows, weight, s2: float, grad=None, gram=N
     J_sub = J[idx]
     r0, lin = r[idx], dzs @ J_sub.T
     k = len(dzs)
-    off = None
-    if centre is not None:
-        off = centre[0] - r0 - J_sub @ centre[1]
-        r_sub = r_sub - off
     # Per picked pixel: the rise minus its quadratic part, e_p (k, M).
     lin += r0  # the linearised residuals at each point
+    off = None
+    if centre is not None:  # compared with lin + off: float32's own error taken off
+        off = centre[0] - r0 - J_sub @ centre[1]
+        lin += off
     # (r_sub - lin)(r_sub + lin), not r_sub^2 - lin^2 (they nearly cancel), in two
     # (k, 3M) arrays: each new one costs ~4 ms of page faults at 256^2.
     e = r_sub - lin
     lin += r_sub
+    if off is not None:
+        lin -= 2.0 * off
     e *= lin
     e = e.reshape(k, -1, 3) @ np.full(3, 0.5)  # (k, M); NumPy's sum over 3 is ~10x slower
     rest = e @ weight
     var = (e * e) @ (weight * np.maximum(weight - 1.0, 0.0))
-    if off is not None:
-        u = np.abs(r_sub * off).reshape(k, -1, 3) @ np.ones(3)  # (k, M)
-        var += 2.0 * ((u * u) @ (weight * weight))
+    if off is not None:  # (sum_c |s_c d_c|)^2 <= |s|^2 |d|^2 per pixel
+        d2 = (off * off).reshape(-1, 3) @ np.ones(3)
+        var += 2.0 * ((r_sub * r_sub) @ np.repeat(weight * weight * d2, 3))
     return 2.0 * (quad + rest) / s2, 2.0 * np.sqrt(var) / s2
 
 

@@ -211,8 +211,11 @@ class Problem:
     def make(cls, targets, scene, material, *, init=None, fixed=None, bounds=None,
              solver="levenberg_marquardt", mask="interior", exclude=None, weights=None,
              noise_sigma=None, loss="l2", loss_scale=None, saturation=None, max_steps=None,
-             rtol=RTOL, atol=ATOL, dtype=jnp.float64, base_dir=None) -> Problem:
-        """Check the arguments of ``fit`` (``_args``) and set up targets (B, H, W, 3)."""
+             rtol=RTOL, atol=ATOL, dtype=jnp.float64, base_dir=None,
+             estimate=True) -> Problem:
+        """Check the arguments of ``fit`` (``_args``) and set up targets (B, H, W, 3).
+        ``estimate``: estimate each target's noise (NaN without: the coarse
+        stage's problem, which only solves)."""
         scene = _args.scene_of(scene)
         material = material if isinstance(material, Material) else Material.make(material)
         if solver not in SOLVERS:
@@ -280,7 +283,8 @@ class Problem:
         geometry = _fitted_geometry(renderer, rows.astype(np.int64).tobytes())
         interior = np.zeros(scene.height * scene.width, dtype=bool)
         interior[renderer.pixel_index[rows]] = True
-        noise = [estimate_noise(t, interior.reshape(scene.height, scene.width)) for t in targets]
+        noise = [estimate_noise(t, interior.reshape(scene.height, scene.width)) if estimate
+                 else np.full(3, np.nan) for t in targets]
         return cls(material=material, renderer=renderer, geometry=geometry, rows=rows,
                    n_dropped=n_dropped, targets=np.where(usable, picked, 0.0), weights=w,
                    init_full=init_full, blocks=blocks, loss=loss,

@@ -163,7 +163,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
                  "looks noise-free)" if floored else "noise level (Immerkaer estimate)")
         message = f"poor fit: the residual RMSE is {ratio:.3g} times the target's {level}"
     err = np.where(used, model - np.asarray(data.target), 0.0)
-    pix = np.asarray(problem.renderer.pixel_index)[problem.rows]
+    pix = _fitted_pixels(problem, data)
     adequacy = {
         "noise_ratio": ratio, "noise_floored": bool(floored),
         "regions": _adequacy.region_stats(err, used, _adequacy.pixel_regions(data.geometry),
@@ -207,6 +207,13 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
     return res
 
 
+def _fitted_pixels(problem: Problem, data: Data) -> np.ndarray:
+    """(P,) flat image index of each fitted pixel (the fitted geometry is made
+    for these pixels: kept with it, ``_adequacy.of_geometry``)."""
+    return _adequacy.of_geometry(data.geometry, "pixels", lambda: np.asarray(
+        problem.renderer.pixel_index)[problem.rows])
+
+
 def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_stat, params,
                      model, R):
     """(stderr total, systematic, of which discretisation (each (n,)), block info).
@@ -221,29 +228,29 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     Js = scaled_jacobian(spec, z, J)
     Rs = scaled_jacobian(spec, z, R)  # R: J's R factor, so Js^T Js = Rs^T Rs
     gram = Rs.T @ Rs  # the sandwich's and the shifts'
-    pix = np.asarray(problem.renderer.pixel_index)[problem.rows]
-    ids, n_blocks = _adequacy.block_ids(pix, problem.renderer.scene.width)
+    pix = _fitted_pixels(problem, data)
+    ids, n_blocks = _adequacy.of_geometry(data.geometry, "blocks", lambda: _adequacy.block_ids(
+        pix, problem.renderer.scene.width))
     cov_hac = _adequacy.sandwich(Js, r, ids, n_blocks, gram)
     cov_sys = _adequacy.systematic(cov_stat, cov_hac, n_blocks)
     info = {"n_blocks": int(n_blocks),
             "hac_over_stat_max": float(np.sqrt(np.max(
                 np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300))))}
     t0 = time.perf_counter()
-    rows, share = _discretisation.sample_rows(_adequacy.pixel_regions(data.geometry),
-                                              problem.renderer.scene)
+    rows, share = _adequacy.of_geometry(data.geometry, "finer rows", lambda: (
+        _discretisation.sample_rows(_adequacy.pixel_regions(data.geometry),
+                                    problem.renderer.scene)))
     finer = np.zeros_like(model)
     coverage = np.zeros(model.shape[0])
     sky_term, glossy = _discretisation.sky_terms(data, params, spec.material, spec.env_type)
     coarse = model - sky_term  # the model without its sky term
     finer[rows], coverage[rows] = _discretisation.finer_values(problem, params, rows,
                                                                coarse[rows])
-    move = _discretisation.rounding_move(problem, z)
-    if move is not None:  # its parameters rounded to float32: not a discretisation error
-        finer[rows] -= (J @ move).reshape(-1, 3)[rows]
     # The sky term (not refined) over the part of the pixel the finer samples
     # see on the sphere: finer = finer lights + background + sky x coverage.
-    seen = np.asarray(data.geometry.hit, dtype=np.float64) @ np.asarray(
-        data.geometry.sample_weight, dtype=np.float64)
+    seen = _adequacy.of_geometry(data.geometry, "seen", lambda: np.asarray(
+        data.geometry.hit, dtype=np.float64) @ np.asarray(data.geometry.sample_weight,
+                                                            dtype=np.float64))
     covered = coverage > 0
     scale = np.zeros(model.shape[0])
     scale[rows] = share  # body pixels stand for their unrendered neighbours
