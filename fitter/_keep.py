@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import math
 import threading
+import weakref
 from types import ModuleType
 
 
@@ -55,13 +56,41 @@ def trim(kept: dict, most: int, max_bytes: float = math.inf, size=nbytes,
 
 #: Every ``recent`` cache of the process (``release``).
 _ALL: list = []
+#: ``derived``'s values: [(weak reference to the owner's anchor, {name: value})],
+#: the newest last, at most ``KEEP_DERIVED``.
+_DERIVED: list = []
+KEEP_DERIVED = 4
 
 
 def release() -> None:
-    """Empty every ``recent`` cache: a batch worker does so before a job of
-    another scene, so that one job's arrays are not held beside the next's."""
+    """Empty every ``recent`` cache and ``derived``'s values: a batch worker does
+    so before a job of another scene, so that one job's arrays are not held
+    beside the next's."""
     for f in _ALL:
         f.cache_clear()
+    _DERIVED.clear()
+
+
+def derived(anchor, name: str, make):
+    """``make()``, a value that depends only on the object that owns ``anchor``
+    (an array of it, weakly referenced: nothing is kept alive by this), kept
+    with that object's other values under ``name`` for the last
+    ``KEEP_DERIVED`` objects asked about; its arrays made read-only."""
+    for k, (ref, values) in enumerate(_DERIVED):
+        if ref() is anchor:
+            _DERIVED.append(_DERIVED.pop(k))
+            break
+    else:
+        values = {}
+        _DERIVED[:] = [e for e in _DERIVED if e[0]() is not None][1 - KEEP_DERIVED:]
+        _DERIVED.append((weakref.ref(anchor), values))
+    if name not in values:
+        value = make()
+        for a in value if isinstance(value, tuple) else (value,):
+            if hasattr(a, "flags"):
+                a.flags.writeable = False
+        values[name] = value
+    return values[name]
 
 
 def recent(max_items: int, max_bytes: float):

@@ -109,3 +109,37 @@ def test_a_batch_worker_drops_the_last_scene_before_a_job_of_another(monkeypatch
         _task._scene_of(job(width))
     assert released == [1]  # once: before the first job of the 16-wide scene
     assert render_mod._prepare.cache_info()[0] == 0  # every scene cache emptied
+
+
+def test_derived_values_kept_per_owner_without_keeping_it(monkeypatch):
+    """``derived``: a value made once per owner (its anchor array) and name,
+    read-only, for the last ``KEEP_DERIVED`` owners; an owner that is gone is
+    not kept alive by it (a weak reference) and its values go with it."""
+    import gc
+    import weakref
+
+    from fitter import _keep
+
+    monkeypatch.setattr(_keep, "_DERIVED", [])
+    made = []
+
+    def value(tag):
+        made.append(tag)
+        return np.full(3, float(len(made)))
+
+    owners = [np.zeros(2) for _ in range(_keep.KEEP_DERIVED + 1)]
+    first = _keep.derived(owners[0], "v", lambda: value(0))
+    assert _keep.derived(owners[0], "v", lambda: value(1)) is first and made == [0]
+    assert not first.flags.writeable
+    _keep.derived(owners[0], "w", lambda: value(2))  # another name: made
+    for k, owner in enumerate(owners[1:], 1):
+        _keep.derived(owner, "v", lambda k=k: value(10 + k))
+    assert len(_keep._DERIVED) == _keep.KEEP_DERIVED  # the oldest owner's values went
+    _keep.derived(owners[0], "v", lambda: value(99))
+    assert made[-1] == 99
+    gone = weakref.ref(owners[-1])
+    del owners[-1], owner
+    gc.collect()
+    assert gone() is None  # not kept alive
+    _keep.release()
+    assert _keep._DERIVED == []

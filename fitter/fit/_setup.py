@@ -18,6 +18,7 @@ from ..render import KEEP_BYTES, Renderer, cached_renderer
 from .. import checks
 from . import _args
 from ._args import FitError as FitError
+from ._adequacy import of_geometry
 from ._noise import estimate_noise
 from ._problem import LOSSES, Block, Data, Spec, z_from_params
 from ._solvers import ATOL, RTOL, SOLVERS, default_max_steps
@@ -43,7 +44,8 @@ def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
     hit = np.asarray(geo.hit)
     if isinstance(mask, str):
         if mask == "interior":  # every sample: a count by a product (all() over K: 2x slower)
-            chosen = (hit @ np.ones(hit.shape[1])) == hit.shape[1]
+            chosen = of_geometry(geo, "interior", lambda: (hit @ np.ones(hit.shape[1]))
+                                 == hit.shape[1])
         elif mask == "active":
             chosen = np.ones(hit.shape[0], dtype=bool)
         else:
@@ -158,15 +160,15 @@ def _exposure_degenerate(material: Material, blocks, background) -> FitError | N
     Exact degeneracy: every lobe's radiance is linear in a free scale
     (``Lobe.scale``: a reflectance, mirror.rho_m), so exposure * c and every
     scale / c render the same image, unless a fitted pixel shows light of known
-    absolute scale -- the environment behind the rim (``background`` (P, 3) of
-    the fitted pixels). A weaker trade (a fixed-scale specular lobe whose
+    absolute scale -- the environment behind the rim (``background()``: (P, 3)
+    of the fitted pixels, asked for only with exposure free). A weaker trade (a fixed-scale specular lobe whose
     Fresnel eta can brighten it) is left to the identifiability checks.
     """
     free = {b.key for b in blocks}
     if EXPOSURE_KEY not in free:
         return None
     scales = [f"{lb.name}.{lb.scale}" if lb.scale else None for lb in material.lobe_objects]
-    if not all(k in free for k in scales) or np.any(np.asarray(background) != 0):
+    if not all(k in free for k in scales) or np.any(np.asarray(background()) != 0):
         return None
     names = ", ".join(scales)
     return FitError(
@@ -263,7 +265,7 @@ class Problem:
         if rows.size == 0:
             raise _no_pixels(renderer, mask, n_dropped, saturation)
         degenerate = _exposure_degenerate(material, blocks,
-                                          np.asarray(renderer.geometry.background)[rows])
+                                          lambda: np.asarray(renderer.geometry.background)[rows])
         if degenerate is not None:
             raise degenerate
         picked = targets.reshape(len(targets), -1, 3)[:, renderer.pixel_index[rows]]

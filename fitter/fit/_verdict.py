@@ -169,7 +169,9 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         "regions": _adequacy.region_stats(err, used, _adequacy.pixel_regions(data.geometry),
                                           scale),
         "neighbour_correlation": _adequacy.neighbour_correlation(
-            err, pix, problem.renderer.scene.width)}
+            err, pix, problem.renderer.scene.width, _adequacy.of_geometry(
+                data.geometry, "neighbours", lambda: _adequacy.neighbour_pairs(
+                    pix, problem.renderer.scene.width)))}
     if hac is not None:
         adequacy["blocks"] = hac
     failing = status == "failed" and message.startswith("poor fit")
