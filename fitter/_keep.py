@@ -59,6 +59,7 @@ _ALL: list = []
 #: ``derived``'s values: [(weak reference to the owner's anchor, {name: value})],
 #: the newest last, at most ``KEEP_DERIVED``.
 _DERIVED: list = []
+_DERIVED_LOCK = threading.Lock()
 KEEP_DERIVED = 4
 
 
@@ -76,21 +77,24 @@ def derived(anchor, name: str, make):
     (an array of it, weakly referenced: nothing is kept alive by this), kept
     with that object's other values under ``name`` for the last
     ``KEEP_DERIVED`` objects asked about; its arrays made read-only."""
-    for k, (ref, values) in enumerate(_DERIVED):
-        if ref() is anchor:
-            _DERIVED.append(_DERIVED.pop(k))
-            break
-    else:
-        values = {}
-        _DERIVED[:] = [e for e in _DERIVED if e[0]() is not None][1 - KEEP_DERIVED:]
-        _DERIVED.append((weakref.ref(anchor), values))
-    if name not in values:
-        value = make()
-        for a in value if isinstance(value, tuple) else (value,):
-            if hasattr(a, "flags"):
-                a.flags.writeable = False
-        values[name] = value
-    return values[name]
+    with _DERIVED_LOCK:
+        for k, (ref, values) in enumerate(_DERIVED):
+            if ref() is anchor:
+                _DERIVED.append(_DERIVED.pop(k))
+                break
+        else:
+            live = [e for e in _DERIVED if e[0]() is not None]
+            values = {}
+            _DERIVED[:] = live[max(0, len(live) - KEEP_DERIVED + 1):]
+            _DERIVED.append((weakref.ref(anchor), values))
+        if name in values:
+            return values[name]
+    value = make()  # outside the lock (two threads may both make it: the same value)
+    for a in value if isinstance(value, tuple) else (value,):
+        if hasattr(a, "flags"):
+            a.flags.writeable = False
+    with _DERIVED_LOCK:
+        return values.setdefault(name, value)
 
 
 def recent(max_items: int, max_bytes: float):

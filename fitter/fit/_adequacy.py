@@ -64,8 +64,8 @@ def of_geometry(geometry, name: str, make):
 def pixel_regions(geometry) -> np.ndarray:
     """(P,) int region of each fitted pixel: 0 body, 1 highlight, 2 rim.
 
-    Depends on the geometry alone (not on the parameters); the last one's
-    labels are kept (as read-only), measured 13-30 ms each at 256^2."""
+    Depends on the geometry alone (not on the parameters): kept with it
+    (``of_geometry``, read-only), measured 13-30 ms each at 256^2."""
     return of_geometry(geometry, "regions", lambda: _regions(geometry))
 
 

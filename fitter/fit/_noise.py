@@ -18,11 +18,17 @@ def estimate_noise(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Per-channel noise standard deviation (3,) from pixels whose 3 x 3
     neighbourhood lies inside ``mask`` ((H, W) bool); NaN if there are none."""
     img = np.asarray(image, dtype=np.float64)
+    m = np.asarray(mask, dtype=bool)
+    ys, xs = np.nonzero(m.any(axis=1))[0], np.nonzero(m.any(axis=0))[0]
+    if ys.size:  # the mask's bounding box holds every pixel that counts
+        img = img[ys[0]:ys[-1] + 1, xs[0]:xs[-1] + 1]
+        m = m[ys[0]:ys[-1] + 1, xs[0]:xs[-1] + 1]
     h, w, c = img.shape
-    rows = img.reshape(h, w * c)  # x neighbours c apart on contiguous rows
+    if h < 3 or w < 3:
+        return np.full(c, np.nan)
+    rows = np.ascontiguousarray(img).reshape(h, w * c)  # x neighbours c apart on contiguous rows
     d2x = rows[:, :-2 * c] - 2.0 * rows[:, c:-c] + rows[:, 2 * c:]
     lap = np.abs(d2x[:-2] - 2.0 * d2x[1:-1] + d2x[2:]).reshape(-1, c)  # (H-2)(W-2), centred
-    m = np.asarray(mask, dtype=bool)
     inside = np.ones((m.shape[0] - 2, m.shape[1] - 2), dtype=bool)
     for dy in range(3):
         for dx in range(3):

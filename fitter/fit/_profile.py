@@ -134,7 +134,9 @@ def subset_rows(labels, stride: int = BODY_STRIDE, highlight_stride: int = HIGHL
         picked = all_[::step]
         rows.append(picked)
         weight.append(np.full(picked.size, all_.size / max(picked.size, 1)))
-        spare.append(np.setdiff1d(all_, picked, assume_unique=True))
+        unpicked = np.ones(all_.size, dtype=bool)
+        unpicked[::step] = False
+        spare.append(all_[unpicked])  # (setdiff1d's sort: 4x slower)
     m = sum(a.size for a in rows)
     size = int(np.ceil(2.0 ** (np.ceil(8.0 * np.log2(max(m, 1))) / 8.0)))
     spare = np.concatenate(spare)

@@ -161,8 +161,9 @@ def _exposure_degenerate(material: Material, blocks, background) -> FitError | N
     (``Lobe.scale``: a reflectance, mirror.rho_m), so exposure * c and every
     scale / c render the same image, unless a fitted pixel shows light of known
     absolute scale -- the environment behind the rim (``background()``: (P, 3)
-    of the fitted pixels, asked for only with exposure free). A weaker trade (a fixed-scale specular lobe whose
-    Fresnel eta can brighten it) is left to the identifiability checks.
+    of the fitted pixels, asked for only with exposure free). A weaker trade (a
+    fixed-scale specular lobe whose Fresnel eta can brighten it) is left to the
+    identifiability checks.
     """
     free = {b.key for b in blocks}
     if EXPOSURE_KEY not in free:
