@@ -260,12 +260,14 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     diff = finer + sky_term * (coverage / np.maximum(seen, 1e-300))[:, None] - model
     diff = np.where(covered[:, None], diff, 0.0)
     sky = _discretisation.sky_stencil_error(data, spec.material, sky_term, glossy)
-    rings = np.zeros_like(model)
-    if data.geometry.has_sky:
+    changes = [diff]
+    if data.geometry.has_sky:  # (without a sky the ring error is zero: no column)
+        rings = np.zeros_like(model)
         rings[rows] = _discretisation.ring_error(problem, params, rows, sky_term[rows])
+        changes.append(rings)
     # One least-squares solve for every shift; independent, they add in quadrature.
     deltas = _discretisation.shift(Js, np.stack(
-        [(diff * w * scale[:, None]).reshape(-1), (rings * w * scale[:, None]).reshape(-1)]
+        [(c * w * scale[:, None]).reshape(-1) for c in changes]
         + [(s * np.asarray(data.weights, dtype=np.float64)).reshape(-1) for s in sky], axis=1),
         gram)
     cov_disc = deltas @ deltas.T
