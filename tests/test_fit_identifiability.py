@@ -292,3 +292,25 @@ def test_a_parameter_marked_after_the_last_refit_round_is_not_said_to_be_held(mo
     assert "oren_nayar.sigma" in r.free  # fitted, not held
     (w,) = [w for w in r.warnings if w.startswith("oren_nayar.sigma")]
     assert "left at this fit's value" in w and "held" not in w, w
+
+
+def test_covariance_asked_again_is_the_same_and_the_callers_own():
+    """The covariance of an R factor is kept for the next identical call (the
+    fit's checks ask three or four times): the same values again, on arrays
+    the caller may change without changing the next answer; another R gives
+    its own. Reference: s^2 (R^T R)^-1 of the same R (closed form)."""
+    from fitter.fit import _covariance, _setup
+
+    truth = {"lambert.rho_d": [0.5, 0.4, 0.3], "torrance_sparrow.m": 0.2}
+    problem = _setup.Problem.make(np.asarray(fitter.render(truth, SCENE))[None], SCENE,
+                                  "lambert+torrance_sparrow")
+    spec, z = problem.spec, problem.z_init()
+    R = np.triu(np.random.default_rng(5).normal(size=(spec.n, spec.n))) + 3.0 * np.eye(spec.n)
+    first = _covariance.covariance(spec, z, R, 0.7)
+    np.testing.assert_allclose(first[0], 0.7 * np.linalg.inv(R.T @ R), rtol=1e-10)
+    for a in first:
+        a[...] = -1.0  # the caller's arrays
+    again = _covariance.covariance(spec, z, R.copy(), 0.7)
+    np.testing.assert_allclose(again[0], 0.7 * np.linalg.inv(R.T @ R), rtol=1e-10)
+    other = _covariance.covariance(spec, z, 2.0 * R, 0.7)
+    np.testing.assert_allclose(other[0], 0.25 * again[0], rtol=1e-10)

@@ -52,8 +52,9 @@ def covariance(spec: Spec, z, J, s2: float):
     key = None
     if J.shape[0] == J.shape[1]:  # an R factor: compared by value (n^2 numbers)
         key = (z.tobytes(), J.tobytes(), float(s2))
-        if _LAST and _LAST[0][1] == key and _LAST[0][0] == spec:
-            return tuple(a.copy() for a in _LAST[0][2])
+        last = _LAST[0] if _LAST else None  # (one read: another thread may replace it)
+        if last is not None and last[1] == key and last[0] == spec:
+            return tuple(a.copy() for a in last[2])
     J = scaled_jacobian(spec, z, J)
     cov = s2 * np.linalg.pinv(J.T @ J, hermitian=True)
     blind = np.linalg.norm(J, axis=0) == 0
