@@ -298,8 +298,11 @@ class Lobe:
             the lobe shows depends on the sphere's interior.
         doc: the model in one line (the README's lobe table shows it).
         single_precision: its values in float32 are near enough float64's for
-            the post-fit profile's estimates (``fitter.fit._profile.SINGLE``:
-            a speed choice, its error measured there either way).
+            the fit's two float32 estimates: the cost profile's pixel subset
+            (``fitter.fit._profile.SINGLE``, whose error is measured either
+            way) and the stated errors' finer model
+            (``fitter.fit._discretisation.SINGLE``). False where float32
+            rounds the lobe far more than its inputs (Phong's cos^e: e times).
         mitsuba: its Mitsuba 3 equivalent (``fitter.bsdf.mitsuba_map``).
         hints: what the property tests need (``Hints``).
     """
