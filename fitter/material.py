@@ -103,6 +103,11 @@ class Material:
         return tuple(LOBES[n] for n in self.lobes)
 
     @property
+    def single_precision(self) -> bool:
+        """Whether every lobe allows the fit's float32 estimates (``Lobe.single_precision``)."""
+        return all(lb.single_precision for lb in self.lobe_objects)
+
+    @property
     def opaque(self) -> list[str]:
         """Names of the opaque (``brdf``) lobes: those lights and an environment light."""
         return [lb.name for lb in self.lobe_objects if lb.kind == "brdf"]

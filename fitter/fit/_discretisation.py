@@ -315,7 +315,7 @@ def _values(scene, material, env64, lighting, flat, params, env_type, key,
 
 def single(material, lit: bool) -> bool:
     """Whether the finer model renders in float32 (``SINGLE``)."""
-    return SINGLE and not lit and all(lb.single_precision for lb in material.lobe_objects)
+    return SINGLE and not lit and material.single_precision
 
 
 def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, np.ndarray]:

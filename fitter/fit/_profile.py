@@ -286,7 +286,7 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
     rows, weight = picks
     env = data.geometry.has_env_samples
     single = (SINGLE and not env and np.dtype(data.target.dtype) == np.float64
-              and all(lb.single_precision for lb in spec.material.lobe_objects))
+              and spec.material.single_precision)
     at = np.concatenate([zs, np.asarray(z, dtype=np.float64)[None]]) if single else zs
     if env:  # their rows are remapped on the host
         r_at = residuals_at_points(spec, at, subset_data(data, rows, _made_ahead(data, rows)),
