@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._keep import derived
 from ._math import to_device
 from .bsdf.base import COT_NORMAL, Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
@@ -147,6 +148,14 @@ class Geometry(NamedTuple):
     def has_sky(self) -> bool:
         """Whether the environment's sky term lights these pixels (a sky table)."""
         return bool(self.env_color.shape[0] and self.env_color.shape[1])
+
+    def kept(self, name: str, make):
+        """``make()``, a value that depends on this geometry alone, kept with it
+        under ``name`` (``fitter._keep.derived``: read-only, and this geometry
+        not kept alive by it). A fit asks for some twice and a repeated fit of
+        one problem shares its geometry objects (the renderer's and the fitted
+        pixels' geometries are cached)."""
+        return derived(self.hit, name, make)
 
     def subset(self, rows: np.ndarray, own_samples: bool = False) -> "Geometry":
         """The geometry of the active pixels ``rows`` only (NumPy arrays; the sky

@@ -16,6 +16,7 @@ from scipy.special import chdtri
 import fitter
 from fitter.fit import _compile, _drivers, _identify, _profile
 from fitter.fit._covariance import residual_variance
+from fitter.fit._problem import single_coordinates
 
 LIGHTS = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),
           fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0)))
@@ -296,7 +297,7 @@ def test_single_coordinates_are_where_float32_puts_the_values():
     problem = _setup.Problem.make(np.asarray(fitter.render(truth, scene, mat))[None], scene, mat)
     spec = problem.spec
     zs = problem.z_init()[None] + np.random.default_rng(4).normal(0.0, 1.0, (5, spec.n))
-    moved = _problem_single(spec, zs)
+    moved = single_coordinates(spec, zs)
     assert {b.transform for b in spec.blocks} >= {"logit", "log", "eta"}
     for b, sl in spec.slices():
         x = transforms.to_user(b.transform, zs[:, sl], b.lower, b.upper)
@@ -304,12 +305,6 @@ def test_single_coordinates_are_where_float32_puts_the_values():
         np.testing.assert_allclose(x_moved, x.astype(np.float32).astype(np.float64),
                                    rtol=1e-14, atol=0, err_msg=b.key)
         assert np.any(x_moved != x)
-
-
-def _problem_single(spec, zs):
-    from fitter.fit._problem import single_coordinates
-
-    return single_coordinates(spec, zs)
 
 
 @pytest.mark.parametrize("lobes, single", [("lambert+torrance_sparrow", True),

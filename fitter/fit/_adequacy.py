@@ -37,8 +37,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._keep import derived
-
 #: Target number of spatial blocks over the fitted pixels.
 N_BLOCKS = 64
 #: Smallest block side (pixels): 2 x 2 blocks still average neighbours.
@@ -54,19 +52,12 @@ RIM_COS = 0.3
 REGIONS = ("body", "highlight", "rim")
 
 
-def of_geometry(geometry, name: str, make):
-    """``make()``, a value that depends on ``geometry`` alone (``fitter._keep.derived``):
-    a fit asks for some twice and a repeated fit of one problem shares its
-    geometry objects (``_setup``'s renderer and fitted geometries are cached)."""
-    return derived(geometry.hit, name, make)
-
-
 def pixel_regions(geometry) -> np.ndarray:
     """(P,) int region of each fitted pixel: 0 body, 1 highlight, 2 rim.
 
     Depends on the geometry alone (not on the parameters): kept with it
-    (``of_geometry``, read-only), measured 13-30 ms each at 256^2."""
-    return of_geometry(geometry, "regions", lambda: _regions(geometry))
+    (``Geometry.kept``, read-only), measured 13-30 ms each at 256^2."""
+    return geometry.kept("regions", lambda: _regions(geometry))
 
 
 def _regions(geometry) -> np.ndarray:

@@ -18,7 +18,6 @@ from ..render import KEEP_BYTES, Renderer, cached_renderer
 from .. import checks
 from . import _args
 from ._args import FitError as FitError
-from ._adequacy import of_geometry
 from ._noise import estimate_noise
 from ._problem import LOSSES, Block, Data, Spec, z_from_params
 from ._solvers import ATOL, RTOL, SOLVERS, default_max_steps
@@ -44,8 +43,7 @@ def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
     hit = np.asarray(geo.hit)
     if isinstance(mask, str):
         if mask == "interior":  # every sample: a count by a product (all() over K: 2x slower)
-            chosen = of_geometry(geo, "interior", lambda: (hit @ np.ones(hit.shape[1]))
-                                 == hit.shape[1])
+            chosen = geo.kept("interior", lambda: (hit @ np.ones(hit.shape[1])) == hit.shape[1])
         elif mask == "active":
             chosen = np.ones(hit.shape[0], dtype=bool)
         else:

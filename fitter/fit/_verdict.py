@@ -90,12 +90,12 @@ def _out_of_steps(static: dict, edge: str = "") -> str:
 
 def _image_rmse(model, data: Data):
     """Per-channel RMSE (3,) of model - target over the values with a weight,
-    and which values have one ((P, 3) bool)."""
+    which values have one ((P, 3) bool) and model - target there (0 elsewhere)."""
     weights = np.asarray(data.weights, dtype=np.float64)
     used = weights > 0
     err = np.where(used, np.asarray(model) - np.asarray(data.target), 0.0)
     ones = np.ones(err.shape[0])  # sums over pixels as products: ~7x faster than axis=0
-    return np.sqrt((ones @ (err * err)) / np.maximum(ones @ used, 1)), used
+    return np.sqrt((ones @ (err * err)) / np.maximum(ones @ used, 1)), used, err
 
 
 def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters: int,
@@ -150,7 +150,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         message = _out_of_steps(problem.static, _near_bound(spec, params, sd))
     d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
     corr = cov_z / np.outer(d, d)
-    rmse, used = _image_rmse(model, data)
+    rmse, used, err = _image_rmse(model, data)
     noise = problem.noise[0 if b is None else b]
     mean = np.sum(np.abs(np.where(used, np.asarray(data.target), 0.0))) / max(used.sum(), 1)
     estimate = float(np.sqrt(np.mean(noise**2)))
@@ -162,15 +162,14 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         level = (f"noise level (its floor, {NOISE_FLOOR:g} of the mean value: the target "
                  "looks noise-free)" if floored else "noise level (Immerkaer estimate)")
         message = f"poor fit: the residual RMSE is {ratio:.3g} times the target's {level}"
-    err = np.where(used, model - np.asarray(data.target), 0.0)
     pix = _fitted_pixels(problem, data)
     adequacy = {
         "noise_ratio": ratio, "noise_floored": bool(floored),
         "regions": _adequacy.region_stats(err, used, _adequacy.pixel_regions(data.geometry),
                                           scale),
         "neighbour_correlation": _adequacy.neighbour_correlation(
-            err, pix, problem.renderer.scene.width, _adequacy.of_geometry(
-                data.geometry, "neighbours", lambda: _adequacy.neighbour_pairs(
+            err, pix, problem.renderer.scene.width, data.geometry.kept(
+                "neighbours", lambda: _adequacy.neighbour_pairs(
                     pix, problem.renderer.scene.width)))}
     if hac is not None:
         adequacy["blocks"] = hac
@@ -211,8 +210,8 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
 
 def _fitted_pixels(problem: Problem, data: Data) -> np.ndarray:
     """(P,) flat image index of each fitted pixel (the fitted geometry is made
-    for these pixels: kept with it, ``_adequacy.of_geometry``)."""
-    return _adequacy.of_geometry(data.geometry, "pixels", lambda: np.asarray(
+    for these pixels: kept with it, ``Geometry.kept``)."""
+    return data.geometry.kept("pixels", lambda: np.asarray(
         problem.renderer.pixel_index)[problem.rows])
 
 
@@ -231,7 +230,7 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     Rs = scaled_jacobian(spec, z, R)  # R: J's R factor, so Js^T Js = Rs^T Rs
     gram = Rs.T @ Rs  # the sandwich's and the shifts'
     pix = _fitted_pixels(problem, data)
-    ids, n_blocks = _adequacy.of_geometry(data.geometry, "blocks", lambda: _adequacy.block_ids(
+    ids, n_blocks = data.geometry.kept("blocks", lambda: _adequacy.block_ids(
         pix, problem.renderer.scene.width))
     cov_hac = _adequacy.sandwich(Js, r, ids, n_blocks, gram)
     cov_sys = _adequacy.systematic(cov_stat, cov_hac, n_blocks)
@@ -239,9 +238,8 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
             "hac_over_stat_max": float(np.sqrt(np.max(
                 np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300))))}
     t0 = time.perf_counter()
-    rows, share = _adequacy.of_geometry(data.geometry, "finer rows", lambda: (
-        _discretisation.sample_rows(_adequacy.pixel_regions(data.geometry),
-                                    problem.renderer.scene)))
+    rows, share = data.geometry.kept("finer rows", lambda: _discretisation.sample_rows(
+        _adequacy.pixel_regions(data.geometry), problem.renderer.scene))
     finer = np.zeros_like(model)
     coverage = np.zeros(model.shape[0])
     sky_term, glossy = _discretisation.sky_terms(data, params, spec.material, spec.env_type)
@@ -250,9 +248,8 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
                                                                coarse[rows])
     # The sky term (not refined) over the part of the pixel the finer samples
     # see on the sphere: finer = finer lights + background + sky x coverage.
-    seen = _adequacy.of_geometry(data.geometry, "seen", lambda: np.asarray(
-        data.geometry.hit, dtype=np.float64) @ np.asarray(data.geometry.sample_weight,
-                                                            dtype=np.float64))
+    seen = data.geometry.kept("seen", lambda: np.asarray(data.geometry.hit, dtype=np.float64)
+                              @ np.asarray(data.geometry.sample_weight, dtype=np.float64))
     covered = coverage > 0
     scale = np.zeros(model.shape[0])
     scale[rows] = share  # body pixels stand for their unrendered neighbours
@@ -293,7 +290,7 @@ def all_held(problem: Problem, b: int, t_compile: float, t_run: float) -> FitRes
     weights = np.asarray(data.weights, dtype=np.float64)
     r = np.asarray(robust((model - np.asarray(data.target, dtype=np.float64)) * weights,
                           spec.loss, spec.loss_scale), dtype=np.float64)
-    rmse, used = _image_rmse(model, data)
+    rmse, used, _ = _image_rmse(model, data)
     return FitResult(
         params={k: (np.asarray(v) if np.size(v) > 1 else float(v))
                 for k, v in problem.init_full.items()}, stderr={},
