@@ -59,6 +59,15 @@ def _sky_irradiance(h, window, pos, c, rows, n: int):
     return jax.ops.segment_sum(irr, jnp.maximum(rows, 0), n)
 
 
+def _host_irradiance(h, window, pos, c, rows, n: int):
+    """``_sky_irradiance`` of a table tabulated on the host (``sky_table``'s small
+    ones), in NumPy: no executable compiled for its shapes."""
+    irr = np.where((rows >= 0)[:, None], sky_sum(h, window, pos, c, xp=np), 0.0)
+    out = np.zeros((n, 3))
+    np.add.at(out, np.maximum(rows, 0), irr)
+    return out
+
+
 #: Rows of a device array (``Geometry.subset`` of the sky irradiance, which may
 #: still be being computed: no wait for it).
 _take_rows = jax.jit(lambda a, rows: jnp.take(a, rows, axis=0))
@@ -454,8 +463,11 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
                                                rings=det.rings)
             rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
             e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub), det.rings)
-            e_irr = _sky_irradiance(to_device(e_nw.sum(-1)), node, frac, e_c, rows,
-                                    pixel_index.size)
+            if isinstance(e_c, np.ndarray):  # a small table, made on the host
+                e_irr = _host_irradiance(e_nw.sum(-1), node, frac, e_c, rows, pixel_index.size)
+            else:
+                e_irr = _sky_irradiance(to_device(e_nw.sum(-1)), node, frac, e_c, rows,
+                                        pixel_index.size)
     if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))

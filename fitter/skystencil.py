@@ -286,8 +286,8 @@ def blocks(node, frac, nodes: int, block: int = BLOCK, window: int = WINDOW):
     return order, start[:, None] + np.arange(s, dtype=np.int32), pos
 
 
-def sky_sum(h, window, pos, c):
-    """Per env sample sum over cells of the node-interpolated h times c (JAX).
+def sky_sum(h, window, pos, c, xp=None):
+    """Per env sample sum over cells of the node-interpolated h times c.
 
     h: (..., T, N) or (..., T, N, 3) lobe x ``node_geometry`` weight (an RGB
     last axis for coloured lobes); window (nb, S) each block's nodes and pos
@@ -295,8 +295,10 @@ def sky_sum(h, window, pos, c):
     x RGB rows (``sky_table``). Returns (..., R, 3): per sample sum_n c (h at
     its node + pos's fraction towards the next, linearly), as hat weights
     max(0, 1 - |pos - s|) over the window's S products c h[window[s]].
+    ``xp``: the array module (default jax.numpy; NumPy for a host table).
     """
-    import jax.numpy as jnp
+    if xp is None:
+        import jax.numpy as xp
 
     rgb = h.shape[-1] == 3 and h.shape[-2] == c.shape[-1]
     nd = 3 if rgb else 2
@@ -304,20 +306,20 @@ def sky_sum(h, window, pos, c):
     nb, rows, n = c.shape
     b, s = rows // 3, window.shape[-1]
     # (T, N, [3,] K): the lobe's columns (lead axes) last, for a plain batched matmul.
-    ht = jnp.moveaxis(h.reshape((-1,) + h.shape[-nd:]), 0, -1)
+    ht = xp.moveaxis(h.reshape((-1,) + h.shape[-nd:]), 0, -1)
     k = ht.shape[-1]
-    hw = jnp.moveaxis(jnp.take(ht, window, axis=0), 1, -2)  # (nb, N, [3,] S, K)
+    hw = xp.moveaxis(xp.take(ht, window, axis=0), 1, -2)  # (nb, N, [3,] S, K)
     hw = hw.reshape(hw.shape[:-2] + (s * k,))
     if rgb:  # per channel: (nb, B, 3, N) x (nb, N, 3, S K)
-        out = jnp.einsum("bscn,bnck->bsck", c.reshape(nb, b, 3, n).astype(h.dtype), hw)
+        out = xp.einsum("bscn,bnck->bsck", c.reshape(nb, b, 3, n).astype(h.dtype), hw)
     else:
-        out = jnp.einsum("brn,bnk->brk", c.astype(h.dtype), hw)
+        out = xp.einsum("brn,bnk->brk", c.astype(h.dtype), hw)
     out = out.reshape(nb, b, 3, s, k)
-    at = pos.reshape(nb, b, 1).astype(h.dtype) - jnp.arange(s, dtype=h.dtype)
-    w = jnp.maximum(1.0 - jnp.abs(at), 0.0)  # (nb, B, S)
+    at = pos.reshape(nb, b, 1).astype(h.dtype) - xp.arange(s, dtype=h.dtype)
+    w = xp.maximum(1.0 - xp.abs(at), 0.0)  # (nb, B, S)
     # an elementwise sum, not a dot: XLA makes (1, S) x (S, 3 K) matrices per sample of it
-    val = jnp.sum(out * w[:, :, None, :, None], axis=3)  # (nb, B, 3, K)
-    return jnp.moveaxis(val.reshape(nb * b, 3, k), -1, 0).reshape(lead + (nb * b, 3))
+    val = xp.sum(out * w[:, :, None, :, None], axis=3)  # (nb, B, 3, K)
+    return xp.moveaxis(val.reshape(nb * b, 3, k), -1, 0).reshape(lead + (nb * b, 3))
 
 
 def _flat_levels(sky):
@@ -335,69 +337,102 @@ def _flat_levels(sky):
     return np.concatenate(quads), shp[:, 0], shp[:, 1], off
 
 
-def _bilinear(quads, h, w, off, u, v):
+def _bilinear(xp, quads, h, w, off, u, v):
     """Mitsuba's bilinear lookup (``envlight.bilinear``) of the level (h, w) at
-    ``off`` of ``_flat_levels``' ``quads``, at (u, v) (JAX)."""
-    import jax.numpy as jnp
-
+    ``off`` of ``_flat_levels``' ``quads``, at u in [0, 1), v in [0, 1] (``xp``:
+    NumPy or jax.numpy)."""
     hf, wf = h.astype(u.dtype), w.astype(u.dtype)
     fx, fy = u * wf - 0.5, v * (hf - 1)
-    x0 = jnp.floor(fx)
-    y0 = jnp.clip(jnp.floor(fy), 0.0, hf - 2)
-    wx, wy = (fx - x0)[..., None], jnp.clip(fy - y0, 0.0, 1.0)[..., None]
-    x0i = jnp.mod(x0.astype(jnp.int32), w)
-    g = jnp.take(quads, y0.astype(jnp.int32) * w + off + x0i, axis=0)  # (..., 4, 3)
+    x0 = xp.floor(fx)
+    y0 = xp.clip(xp.floor(fy), 0.0, hf - 2)
+    wx, wy = (fx - x0)[..., None], xp.clip(fy - y0, 0.0, 1.0)[..., None]
+    x0i = x0.astype(xp.int32)
+    x0i = xp.where(x0i < 0, x0i + w, x0i)  # u in [0, 1): x0 >= -1 (not an integer mod)
+    g = xp.take(quads, y0.astype(xp.int32) * w + off + x0i, axis=0)  # (..., 4, 3)
     top = g[..., 0, :] * (1 - wx) + g[..., 1, :] * wx
     bot = g[..., 2, :] * (1 - wx) + g[..., 3, :] * wx
     return top * (1 - wy) + bot * wy
 
 
-@functools.cache
-def _table_fn():
-    """The per-chunk tabulation of ``sky_table`` (JAX, the inputs' dtype; jitted by
-    ``_table_all_fn``)."""
-    import jax.numpy as jnp
+#: tan(pi / 8): ``_atan2`` reduces its argument below it.
+_TAN_PI_8 = 0.41421356237309503
+
+
+def _atan2(xp, y, x):
+    """atan2(y, x) in float32 accuracy (|error| <= 3e-7 rad; XLA's own is 2.5e-7),
+    vectorised: XLA's CPU atan2 took ~35 ns an element, a third of the sky table's
+    time.
+    Octant reduction to a = min / max in [0, 1], then a -> (a - 1) / (a + 1) above
+    tan(pi / 8) (+ pi / 4), and Cephes' ``atanf`` polynomial (S. L. Moshier, Cephes
+    Math Library 2.2, ``atanf.c``). Signed zeros as IEEE's atan2."""
+    ax, ay = xp.abs(x), xp.abs(y)
+    hi, lo = xp.maximum(ax, ay), xp.minimum(ax, ay)
+    a = lo / xp.where(hi > 0, hi, 1)
+    big = a > _TAN_PI_8
+    a = xp.where(big, (a - 1) / (a + 1), a)
+    z = a * a
+    p = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z
+         - 3.33329491539e-1) * z * a + a
+    p = xp.where(big, p + np.pi / 4, p)
+    p = xp.where(ay > ax, np.pi / 2 - p, p)
+    p = xp.where(xp.signbit(x), np.pi - p, p)
+    return xp.where(xp.signbit(y), -p, p)
+
+
+def _table_fn(xp):
+    """The tabulation of ``sky_table`` for env samples (C,): c (C, 3, N) float64,
+    in the inputs' dtype; ``xp``: jax.numpy (one chunk, under ``_table_all_fn``'s
+    jit) or NumPy (a small table, on the host)."""
 
     def fn(nrm, wo, wt, q_tab, cen_tab, quads, lh, lw, loff, lo, fl):
-        co = jnp.clip(jnp.sum(nrm * wo, -1), 0.0, 1.0)
+        co = xp.clip(xp.sum(nrm * wo, -1), 0.0, 1.0)
         r = 2.0 * co[:, None] * nrm - wo
         t = nrm - co[:, None] * r
-        tn = jnp.linalg.norm(t, axis=-1, keepdims=True)
-        a = jnp.where(jnp.abs(r[:, :1]) < 0.9, jnp.array([1.0, 0, 0], r.dtype),
-                      jnp.array([0, 1.0, 0], r.dtype))
-        t0 = jnp.cross(a, r)
-        t0 = t0 / jnp.linalg.norm(t0, axis=-1, keepdims=True)
-        t = jnp.where(tn > 1e-9, t / jnp.where(tn > 0, tn, 1.0), t0)
-        b = jnp.cross(r, t)
-        th = jnp.arccos(co)
-        x = th / (jnp.pi / 2) * (q_tab.shape[0] - 1)
-        i0 = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, q_tab.shape[0] - 2)
+        tn = xp.linalg.norm(t, axis=-1, keepdims=True)
+        a = xp.where(xp.abs(r[:, :1]) < 0.9, xp.array([1.0, 0, 0], dtype=r.dtype),
+                     xp.array([0, 1.0, 0], dtype=r.dtype))
+        t0 = xp.cross(a, r)
+        t0 = t0 / xp.linalg.norm(t0, axis=-1, keepdims=True)
+        t = xp.where(tn > 1e-9, t / xp.where(tn > 0, tn, 1.0), t0)
+        b = xp.cross(r, t)
+        th = xp.arccos(co)
+        x = th / (xp.pi / 2) * (q_tab.shape[0] - 1)
+        i0 = xp.clip(xp.floor(x).astype(xp.int32), 0, q_tab.shape[0] - 2)
         f = (x - i0.astype(x.dtype))[:, None]
         q = q_tab[i0] * (1 - f) + q_tab[i0 + 1] * f  # (C, N)
         cl = cen_tab[i0] * (1 - f[..., None]) + cen_tab[i0 + 1] * f[..., None]
+        # Not normalised: (u, v) and the sign test below are scale-free (|d| ~ 1, so
+        # no hypot either; the division was ~10 % of the tabulation).
         d = cl[..., :1] * t[:, None] + cl[..., 1:2] * b[:, None] + cl[..., 2:] * r[:, None]
-        d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-        u = jnp.arctan2(d[..., 0], -d[..., 2]) / (2.0 * jnp.pi)
-        u = u - jnp.floor(u)
-        v = jnp.arctan2(jnp.hypot(d[..., 0], d[..., 2]), d[..., 1]) / jnp.pi
-        rad = (_bilinear(quads, lh[lo], lw[lo], loff[lo], u, v) * (1 - fl)[:, None]
-               + _bilinear(quads, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
-        lit = (q > 0) & (jnp.sum(d * nrm[:, None], -1) > 0)
-        c = jnp.where(lit[..., None], rad * (q * wt[:, None] / co[:, None])[..., None], 0.0)
-        return jnp.swapaxes(c, 1, 2).astype(jnp.float64)  # (C, 3, N), float64 sums
+        u = _atan2(xp, d[..., 0], -d[..., 2]) / (2.0 * xp.pi)
+        u = u - xp.floor(u)
+        v = _atan2(xp, xp.sqrt(d[..., 0] ** 2 + d[..., 2] ** 2), d[..., 1]) / xp.pi
+        rad = (_bilinear(xp, quads, lh[lo], lw[lo], loff[lo], u, v) * (1 - fl)[:, None]
+               + _bilinear(xp, quads, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
+        lit = (q > 0) & (xp.sum(d * nrm[:, None], -1) > 0)
+        c = xp.where(lit[..., None], rad * (q * wt[:, None] / co[:, None])[..., None], 0.0)
+        return xp.swapaxes(c, 1, 2).astype(xp.float64)  # (C, 3, N), float64 sums
 
     return fn
+
+
+#: A sky table of at most this many env samples x cells is tabulated with NumPy on
+#: the host: the stated errors' half-ring table (~2 k samples x 263 cells at
+#: 128^2) took ~0.9 CPU-s of a first env fit to trace and compile for its own
+#: shapes, and ~0.15 s on the host.
+HOST_TABLE_CELLS = 2**20
 
 
 @functools.cache
 def _table_all_fn():
     """Jitted ``_table_fn`` over chunks (n, step, ...) -> (n x step / B, rows, N) float64."""
     import jax
+    import jax.numpy as jnp
 
     from .compilation_cache import NO_LIBRARY_FUSIONS
 
     def run(nrm, wo, wt, *consts, rows):
-        out = jax.lax.map(lambda x: _table_fn()(*x, *consts), (nrm, wo, wt))
+        out = jax.lax.map(lambda x: _table_fn(jnp)(*x, *consts), (nrm, wo, wt))
         return out.reshape((-1, rows, out.shape[-1]))
 
     return jax.jit(run, static_argnames="rows", compiler_options=NO_LIBRARY_FUSIONS)
@@ -419,7 +454,9 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     / cos_o, per sample, RGB channel and cell; Q = int_cell max(cos_i, 0) dw
     is tabulated per cell
     (exact for a constant sky), and the 1/cos_o undoes the cos_o that
-    ``node_geometry`` folds into the lobe (smooth up to the horizon).
+    ``node_geometry`` folds into the lobe (smooth up to the horizon). c is a
+    device array, or a NumPy one where the table has at most
+    ``HOST_TABLE_CELLS`` samples x cells (made on the host, nothing compiled).
 
     ``rings``: the stencil's ring density (``Detail.rings``).
     ``dtype``: the tabulation runs in float32 by default (c is returned as
@@ -443,6 +480,16 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     if not order.size:
         return order, window, pos, np.zeros((0, 3 * BLOCK, n))
     nb = window.shape[0]
+    real = order >= 0
+    if np.count_nonzero(real) * n <= HOST_TABLE_CELLS:
+        pick = order[real]
+        consts = [np.asarray(a, dtype) if np.asarray(a).dtype.kind == "f" else a
+                  for a in (q_tab, cen_tab, quads, lh, lw, loff, lo, fl)]
+        c = np.zeros((order.size, 3, n))
+        with np.errstate(all="ignore"):  # (NumPy warns where JAX computes and discards)
+            c[real] = _table_fn(np)(*(np.asarray(x, dtype) for x in (
+                normal[pick], view[pick], weight[pick])), *consts)
+        return order, window, pos, c.reshape(nb, 3 * BLOCK, n)
     n_chunks = -(-order.size // max(chunk, BLOCK))
     per = -(-nb // n_chunks)  # blocks per chunk
     extra = (-nb) % per  # whole padding blocks: every chunk the same shape

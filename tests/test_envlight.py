@@ -15,6 +15,9 @@ from fitter.render import cached_renderer, render
 from fitter.scene import Environment, Scene
 
 SMALL = Scene(width=32, height=32, supersampling=2)
+#: Two float32 tabulations of the same formula (XLA's and NumPy's libm: atan2,
+#: arccos) agree to a few float32 ulps; measured 5e-7 of the table's largest value.
+FLOAT32_RTOL = 1e-5
 
 
 def _sphere_pixels(scene, material):
@@ -333,12 +336,16 @@ def test_the_sky_detail_is_made_per_call(monkeypatch):
     assert lights.detail == envlight.Detail(49, (1, 2), 2)
 
 
-def test_the_set_up_leaves_the_sky_table_on_the_device(sun_probe):
+def test_the_set_up_leaves_the_sky_table_on_the_device(sun_probe, monkeypatch):
     """The sky table and irradiance stay device arrays through the set-up
     (``build_geometry``, ``to_device``, ``Geometry.subset``), so the fit's
-    tracing runs while they are computed; a host copy would wait for them."""
+    tracing runs while they are computed; a host copy would wait for them.
+    (This scene's table is small enough for the host: the device path forced.)"""
+    from fitter import skystencil
     from fitter._math import to_device
     from fitter.geometry import build_geometry
+
+    monkeypatch.setattr(skystencil, "HOST_TABLE_CELLS", 0)
 
     scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe))
     r = cached_renderer(scene, Material.from_params({"lambert.rho_d": 0.5}),
@@ -353,6 +360,37 @@ def test_the_set_up_leaves_the_sky_table_on_the_device(sun_probe):
     part = geo.subset(rows)
     assert isinstance(part.env_irradiance, jax.Array)
     np.testing.assert_array_equal(part.env_irradiance, np.asarray(geo.env_irradiance)[rows])
+
+
+def test_a_small_sky_table_made_on_the_host_is_the_devices(sun_probe, monkeypatch):
+    """A table of few env samples (``skystencil.HOST_TABLE_CELLS``) is made with
+    NumPy, compiling nothing for its shapes: its blocks, rows and values are the
+    device's (float32 rounding), and so is the pixels' sky irradiance. Both run
+    the same per-sample formula (``_table_fn``), whose accuracy
+    ``test_envlight_reference`` checks against quadrature: this checks the host
+    path's assembly (blocks, padding, rows) and its irradiance sum."""
+    from fitter import skystencil
+    from fitter.environment import load_environment
+    from fitter.geometry import build_geometry
+
+    scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe))
+    env = load_environment(scene.environment, None)
+    env = jax.tree_util.tree_map(np.asarray, env)
+    lights = envlight.env_lights("envmap", env.image, env.constant, detail=envlight.Detail(rings=2))
+    host = build_geometry(scene, "envmap", env, lights)
+    assert isinstance(host.env_color, np.ndarray)  # made on the host
+    monkeypatch.setattr(skystencil, "HOST_TABLE_CELLS", 0)
+    dev = build_geometry(scene, "envmap", env, lights)
+    assert isinstance(dev.env_color, jax.Array)
+    nb = host.env_color.shape[0]  # the device's chunks may add whole padding blocks
+    assert np.all(np.asarray(dev.env_color)[nb:] == 0) and np.all(np.asarray(dev.env_index)[
+        host.env_index.size:] < 0)
+    np.testing.assert_array_equal(np.asarray(dev.env_index)[:host.env_index.size],
+                                  host.env_index)
+    np.testing.assert_allclose(host.env_color, np.asarray(dev.env_color)[:nb], rtol=FLOAT32_RTOL,
+                               atol=FLOAT32_RTOL * np.abs(host.env_color).max())
+    np.testing.assert_allclose(host.env_irradiance, np.asarray(dev.env_irradiance),
+                               rtol=FLOAT32_RTOL, atol=0)
 
 
 def test_a_parameter_free_lobes_constant_shape_is_known_before_tracing(sun_probe):

@@ -93,7 +93,33 @@ def test_the_tables_bilinear_lookup_is_mitsubas_on_every_level():
     quads, lh, lw, loff = skystencil._flat_levels(SimpleNamespace(levels=levels))
     u = np.concatenate([rng.random(500), [0.0, 1.0 - 1e-12, 0.5, 0.0]])
     v = np.concatenate([rng.random(500), [0.0, 1.0, 1.0, 0.5]])
-    for i, img in enumerate(levels):
-        got = skystencil._bilinear(jnp.asarray(quads), jnp.int32(lh[i]), jnp.int32(lw[i]),
-                                   jnp.int32(loff[i]), jnp.asarray(u), jnp.asarray(v))
-        np.testing.assert_allclose(np.asarray(got), bilinear(img, u, v), rtol=1e-12, atol=0)
+    for xp in (jnp, np):  # on the device, and on the host (``sky_table``'s small tables)
+        for i, img in enumerate(levels):
+            got = skystencil._bilinear(xp, xp.asarray(quads), xp.int32(lh[i]), xp.int32(lw[i]),
+                                       xp.int32(loff[i]), xp.asarray(u), xp.asarray(v))
+            np.testing.assert_allclose(np.asarray(got), bilinear(img, u, v), rtol=1e-12, atol=0)
+
+
+#: ``skystencil._atan2``'s stated accuracy (float32 inputs), radians.
+ATAN2_ATOL = 3e-7
+
+
+@pytest.mark.parametrize("xp", [jnp, np])
+def test_the_tables_atan2_is_numpys_to_float32_accuracy(xp):
+    """The sky table's vectorised atan2 against NumPy's float64 ``arctan2`` of
+    the same float32 inputs: random points of every octant and scale, the axes,
+    the octant boundaries |y| = |x| and |y| = tan(pi / 8) |x|, and IEEE's signed
+    zeros (atan2(+-0, -0) = +-pi, atan2(+-0, +0) = +-0)."""
+    rng = np.random.default_rng(5)
+    y = rng.normal(size=200_000) * 10.0 ** rng.uniform(-6, 6, 200_000)
+    x = rng.normal(size=200_000) * 10.0 ** rng.uniform(-6, 6, 200_000)
+    t = np.tan(np.pi / 8)
+    special = np.array([[0.0, 1.0], [1.0, 0.0], [0.0, -1.0], [-1.0, 0.0], [1.0, 1.0],
+                        [-1.0, -1.0], [t, 1.0], [-t, -1.0], [1.0, t], [0.0, 0.0],
+                        [-0.0, 0.0], [0.0, -0.0], [-0.0, -0.0], [1e-30, -1.0]])
+    y = np.concatenate([y, special[:, 0]]).astype(np.float32)
+    x = np.concatenate([x, special[:, 1]]).astype(np.float32)
+    got = np.asarray(skystencil._atan2(xp, xp.asarray(y), xp.asarray(x)), np.float64)
+    want = np.arctan2(y.astype(np.float64), x.astype(np.float64))
+    np.testing.assert_allclose(got, want, rtol=0, atol=ATAN2_ATOL)
+    np.testing.assert_array_equal(np.signbit(got[-5:]), np.signbit(want[-5:]))
