@@ -48,7 +48,7 @@ import importlib  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from fitter import geometry, mitsuba, serialize, skystencil  # noqa: E402
+from fitter import geometry, mitsuba, serialize, skystencil, suncells  # noqa: E402
 from fitter.cases import CASES  # noqa: E402
 from fitter.material import Material  # noqa: E402
 
@@ -67,7 +67,7 @@ def _lobes(mat: Material, truth):
 @contextlib.contextmanager
 def _variant(label):
     """Module settings of a discretisation variant (restored afterwards)."""
-    saved = (skystencil.Detail.__new__.__defaults__, geometry.SUN_CONE, geometry.SUN_EDGE,
+    saved = (skystencil.Detail.__new__.__defaults__, suncells.SUN_CONE, suncells.SUN_EDGE,
              geometry.ENV_LIMB_COS)
     nodes, sub, rings = skystencil.Detail()
     change = {"default": {}, "nodes 49": {"nodes": 49}, "nodes 65": {"nodes": 65},
@@ -78,13 +78,13 @@ def _variant(label):
               "limb 0.1": {"limb": 0.1}}[label]
     skystencil.Detail.__new__.__defaults__ = (change.get("nodes", nodes), change.get("sub", sub),
                                               change.get("rings", rings))
-    geometry.SUN_CONE = change.get("cone", geometry.SUN_CONE)
+    suncells.SUN_CONE = change.get("cone", suncells.SUN_CONE)
     geometry.ENV_LIMB_COS = change.get("limb", geometry.ENV_LIMB_COS)
     _clear()
     try:
         yield
     finally:
-        (skystencil.Detail.__new__.__defaults__, geometry.SUN_CONE, geometry.SUN_EDGE,
+        (skystencil.Detail.__new__.__defaults__, suncells.SUN_CONE, suncells.SUN_EDGE,
          geometry.ENV_LIMB_COS) = saved
         _clear()
 

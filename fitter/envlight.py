@@ -26,7 +26,7 @@ hitting sub-pixel sample of silhouette pixels and of limb pixels
 (``geometry.ENV_LIMB_COS``), weighted by its quadrature weight: the sky term
 is smooth across the sphere but for the limb. The sun lights get every
 sub-pixel sample near the highlight and their horizon, one merged light at
-the env samples elsewhere (``geometry.sun_samples``).
+the env samples elsewhere (``suncells.sun_samples``).
 """
 
 from __future__ import annotations

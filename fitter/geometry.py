@@ -19,12 +19,13 @@ import numpy as np
 
 from ._keep import derived
 from ._math import to_device
-from .bsdf.base import COT_NORMAL, Cosines, cosines
+from .bsdf.base import UNLIT, Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
 from .compilation_cache import FAST_COMPILE
 from .environment import EnvData, lookup
-from .envlight import LUMINANCE, sky_sum
+from .envlight import sky_sum
 from .scene import DirectionalLight, PointLight, Scene
+from .suncells import SunCells, sun_samples
 
 _LOOKUP = jax.jit(lookup, static_argnums=0, compiler_options=FAST_COMPILE)
 #: Directions per call of ``_LOOKUP``: the geometries of one fit (the fitted one,
@@ -123,9 +124,7 @@ class Geometry(NamedTuple):
             shape g reflects g x E (Lambert's 1/pi), no per-step sum.
 
         sun: the environment's sun cells as directional lights on their own
-            sample sets (``sun_samples``): a tuple of groups (index (Q,)
-            active-pixel row, ``Cosines`` (L, Q), weight (L, Q) = sample
-            weight x cos_i where lit, colour (L, 3) irradiance); () without.
+            sample sets (``SunCells``, ``sun_samples``); () without.
     """
 
     pixel_index: np.ndarray
@@ -146,7 +145,7 @@ class Geometry(NamedTuple):
     env_cosines: Cosines
     env_node_weight: np.ndarray
     env_irradiance: np.ndarray
-    sun: tuple = ()
+    sun: SunCells | tuple = ()
 
     @property
     def has_env_samples(self) -> bool:
@@ -183,10 +182,9 @@ class Geometry(NamedTuple):
         idx = np.asarray(self.env_index)
         env_rows = np.where(idx >= 0, inv[np.maximum(idx, 0)], -1)
         env_rows = np.where((idx >= 0) & (env_rows < 0), len(rows), env_rows)
-        sun = tuple((inv[np.asarray(i)][inv[np.asarray(i)] >= 0],
-                     cs.map(lambda a: np.asarray(a)[:, inv[np.asarray(i)] >= 0]),
-                     np.asarray(wt)[:, inv[np.asarray(i)] >= 0], np.asarray(col))
-                    for i, cs, wt, col in self.sun)
+        sun = SunCells.of((inv[i][inv[i] >= 0], cs.map(lambda a: a[:, inv[i] >= 0]),  # noqa: B023
+                           wt[:, inv[i] >= 0], col)
+                          for i, cs, wt, col in self.sun.groups()) if self.sun else ()
         env = (_own_samples(self, env_rows, len(rows)) if own_samples and self.has_sky
                else {"env_index": env_rows})
         # The sky irradiance on the device may still be being computed: not waited for.
@@ -333,76 +331,6 @@ def env_samples(scene: Scene, hit, t, o, d, weight, pixel_index):
     return rows, normal, -ray, wts
 
 
-#: Sun samples: a pixel gets every sub-pixel sample and every sun cell where some sample's
-#: normal is within ``SUN_CONE`` rad of the half vector of the sun's centroid direction
-#: (the highlight of any lobe: at 0.35 rad off the half vector Phong e = 100 is down to
-#: 1e-6 of its peak, Beckmann m = 0.1 to e^-12) or sees the sun within ``SUN_EDGE`` of
-#: its horizon; every other pixel sees one directional light (the cells' sum, at their
-#: centroid) from its env samples (``env_samples``: the centre, or every sub-sample at
-#: the limb and silhouette), where the lobes are smooth on the scale of the sun's
-#: 0.05 rad. Against every sample x every cell: at most 1.7e-4 relative (env_phong,
-#: env_plastic, interior pixels) with 47 k instead of 138 k sample x 32 cell evaluations
-#: for 25 k x 32 + 22 k x 1.
-SUN_CONE = 0.35
-SUN_EDGE = 0.05
-
-
-#: Cosines where a sample is unlit (its weight is 0): finite stand-ins, so no lobe
-#: formula sees a zero or negative cosine there (the double-where rule).
-_STAND_IN = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0, COT_NORMAL, COT_NORMAL)
-
-
-#: ``_sun_group`` works on this many (light, sample) pairs at a time: fresh temporaries
-#: of the whole (L, Q) arrays cost page faults here (32 cells x 100 k samples: 3 s
-#: whole, 0.2 s in pieces that stay in cache; the same numbers).
-SUN_CHUNK = 1 << 16
-
-
-#: The sun cells' ``Cosines`` fields: no cotangents (the lobe takes them from the
-#: cosines), as their (cells x samples) arrays are most of an env-lit fit's memory
-#: (tabulated, env_plastic's peak grew 8-12 %).
-_SUN_FIELDS = 6
-
-
-def _sun_group(n, v, w, rows, dirs, irr):
-    """(index, Cosines (L, Q), weight (L, Q), colour (L, 3)) of lights ``dirs`` (L, 3)."""
-    n, v, w, dirs = (np.asarray(a, np.float64) for a in (n, v, w, dirs))
-    L, Q = dirs.shape[0], n.shape[0]
-    cos = Cosines(*(np.empty((L, Q)) for _ in range(_SUN_FIELDS)))
-    weight = np.empty((L, Q))
-    step = max(1, SUN_CHUNK // max(L, 1))
-    for s in range(0, Q, step):
-        # cosines' NumPy path broadcast on (L, q): the generic (L, Q, 3) form with
-        # np.cross took 6 s of a first env fit's 2k-sample discretisation check.
-        part = cosines(n[None, s:s + step], dirs[:, None], v[None, s:s + step])
-        lit = (part.cos_i > 0) & (part.cos_o > 0)
-        for out, a, b in zip(cos[:_SUN_FIELDS], part, _STAND_IN):
-            out[:, s:s + step] = np.where(lit, a, b)
-        weight[:, s:s + step] = np.where(lit, w[s:s + step] * cos.cos_i[:, s:s + step], 0.0)
-    return rows, cos, weight, np.asarray(irr, np.float64)
-
-
-def sun_samples(lighting, hit, normal, view, weight, e_rows, e_n, e_v, e_w):
-    """The sun's sample groups (``Geometry.sun``): every sample x every cell near the
-    highlight and the sun's horizon, one merged light on the env samples elsewhere."""
-    if not lighting.sun_dir.shape[0]:
-        return ()
-    lum = lighting.sun_irradiance @ LUMINANCE
-    lc = (lighting.sun_dir * lum[:, None]).sum(0)
-    lc /= np.linalg.norm(lc)
-    h = lc + view
-    h /= np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-300)
-    cn = normal @ lc
-    near = hit & ((np.sum(normal * h, -1) > np.cos(SUN_CONE)) | (np.abs(cn) < SUN_EDGE))
-    near_pix = near.any(1)
-    p, k = np.nonzero(hit & near_pix[:, None])
-    far = ~near_pix[e_rows]
-    return (_sun_group(normal[p, k], view[p, k], weight[k], p, lighting.sun_dir,
-                       lighting.sun_irradiance),
-            _sun_group(e_n[far], e_v[far], e_w[far], e_rows[far], lc[None],
-                       lighting.sun_irradiance.sum(0, keepdims=True)))
-
-
 def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
                    pixels=None) -> Geometry:
     """Trace the camera rays against the sphere and tabulate the lights.
@@ -448,7 +376,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     light_dir, falloff, color = light_terms(scene.lights, pos)
     cos = Cosines(*(np.asarray(a) for a in cosines(normal, light_dir, -d_a)))
     lit = hit & (cos.cos_i > 0) & (cos.cos_o > 0)
-    cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, _STAND_IN)))
+    cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, UNLIT)))
     light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
     if lighting is not None:
         from .envlight import node_geometry, sky_table

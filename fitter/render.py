@@ -129,12 +129,8 @@ def _columns(g, dg, q):
 FEW_LIGHTS = 4
 
 
-def _brdf_unit(lobe, p, opts, geo: Geometry, lights=None):
-    """Sum over lights and samples of shape * weight * light colour: (P, 3).
-
-    ``lights``: (cosines (L, Q), weight (L, Q), colour (L, 3)) of a sample list
-    (the sun's, ``Geometry.sun``) instead of the scene lights: gives (Q, 3).
-    """
+def _brdf_unit(lobe, p, opts, geo: Geometry):
+    """Sum over the scene's lights and samples of shape * weight * light colour: (P, 3)."""
 
     def light_sum(g, weight, color, rgb):  # g: ([T,] L, P, K[, 3]); rgb: colour axis
         if rgb or weight.shape[0] <= FEW_LIGHTS:
@@ -157,8 +153,44 @@ def _brdf_unit(lobe, p, opts, geo: Geometry, lights=None):
 
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
     args = (geo.cosines, geo.light_weight, geo.light_color)
-    if lights is not None:  # a sample list: K = 1
-        args = (lights[0].map(lambda a: a[..., None]), lights[1][..., None], lights[2])
+    if theta is None:
+        return unit(None, *args)
+    return _with_local_jacobian(unit, theta, *args,
+                                value_and_jac=unit_and_jac if lobe.shape_grad else None)
+
+
+def _sun_unit(lobe, p, opts, sun):
+    """Sum over each sun group's lights of shape * weight * colour (``SunCells``),
+    the lobe evaluated once on every group's flat (light, sample) pairs: (Q, 3)
+    for the sum Q of the groups' samples, in ``sun.index``'s order."""
+    shapes = [np.shape(w) for w in sun.weight]
+    cuts = np.cumsum([0] + [n_l * n_q for n_l, n_q in shapes])
+
+    def group_sums(g, weights, colors, rgb):  # g: (..., E[, 3]) -> (..., Q, 3)
+        tail = g.shape[-1:] if rgb else ()
+        lead = g.shape[:g.ndim - 1 - len(tail)]
+        out = []
+        for (n_l, n_q), a, b, w, col in zip(shapes, cuts[:-1], cuts[1:], weights, colors):
+            gi = (g[..., a:b, :] if rgb else g[..., a:b]).reshape(lead + (n_l, n_q) + tail)
+            if rgb or n_l <= FEW_LIGHTS:
+                out.append(jnp.einsum("...lpc,lp,lc->...pc" if rgb else "...lp,lp,lc->...pc",
+                                      gi, w, col))
+            else:  # many lights (the cells): as ``_brdf_unit``'s
+                out.append(jnp.einsum("...lp,lc->...pc", gi * w, col))
+        return jnp.concatenate(out, axis=-2)
+
+    def unit(theta, cos, weights, colors):
+        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (E[, 3])
+        return group_sums(g, weights, colors, g.ndim > 1)
+
+    def unit_and_jac(theta, cos, weights, colors):
+        q = unflatten(theta)
+        g, dg = lobe.shape_grad(q, opts, cos)
+        out = group_sums(_columns(g, dg, q), weights, colors, g.ndim > 1)
+        return out[0], jnp.moveaxis(out[1:], 0, -1)
+
+    theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
+    args = (sun.cosines, sun.weight, sun.color)
     if theta is None:
         return unit(None, *args)
     return _with_local_jacobian(unit, theta, *args,
@@ -279,10 +311,9 @@ def render_active(params, geo: Geometry, env: EnvData, sphere, *, material, env_
                 value = value + p[lobe.scale] * _brdf_unit(lobe, p, opts, geo)
             if geo.has_sky:
                 value = value + p[lobe.scale] * _env_unit(lobe, p, opts, geo)
-            for index, cos, weight, color in geo.sun:
-                if index.shape[0]:
-                    sun = _brdf_unit(lobe, p, opts, geo, (cos, weight, color))
-                    value = value + p[lobe.scale] * jnp.zeros_like(value).at[index].add(sun)
+            if geo.sun:
+                value = value + p[lobe.scale] * jnp.zeros_like(value).at[geo.sun.index].add(
+                    _sun_unit(lobe, p, opts, geo.sun))
         else:
             value = value + _specular(lobe, p, opts, geo, env, sphere, env_type)
     if material.exposure:  # static: a material without it traces exactly as before
@@ -396,8 +427,8 @@ def render(params: Mapping[str, Any], scene: Scene, material: Material | None = 
     ``material`` defaults to the lobes named by the keys of ``params`` (string
     and bool values there are lobe options, e.g. ``"torrance_sparrow.geometry":
     "smith"``); an ``"exposure"`` value multiplies the whole image, background
-    included (``fitter.material.EXPOSURE``). Differentiable in the numeric values; the prepared scene is
-    cached, so repeated calls only pay for the BSDF evaluation. A concrete
+    included (``fitter.material.EXPOSURE``). Differentiable in the numeric values;
+    the prepared scene is cached, so repeated calls only pay for the BSDF evaluation. A concrete
     value outside its lobe's box (NaN, m <= 0, rho > 1, ...) is a
     ``MaterialError`` naming the key and the range (``complete_params``); a
     bad scene a ``SceneError`` naming the field; a render this machine's memory

@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._math import to_device
+from .atan2 import atan2
 
 #: Ring edges (radians from the mirror direction) of the sky stencil.
 #: Below 0.3 rad twice as many rings as the first version (midpoints added): a midpoint
@@ -188,9 +189,10 @@ def warm() -> None:
 def _node_geometry(nodes: int, sub: tuple, rings: int = 1):
     """``Cosines`` (T, N, M) of M points per stencil cell at the theta_o nodes (cos_o
     (T, 1, 1): one per node) and the weights (T, N, M) by which the renderer sums
-    a lobe there: cos_o x the point's share of the cell's Q = int max(cos_i, 0) dw. The points are the cos-weighted
-    centroids of ``sub`` = (alpha, phi) groups of the ``_FINE`` sub-cells that
-    tabulate Q, so the shares sum to exactly 1 where Q > 0 (Lambert stays exact).
+    a lobe there: cos_o x the point's share of the cell's Q = int max(cos_i, 0) dw.
+    The points are the cos-weighted centroids of ``sub`` = (alpha, phi) groups of
+    the ``_FINE`` sub-cells that tabulate Q, so the shares sum to exactly 1 where
+    Q > 0 (Lambert stays exact).
     Local frame: r = +z, n = (sin t, 0, cos t), wo = (sin 2t, 0, cos 2t). Points
     that receive nothing get the normal as a harmless stand-in direction (weight 0).
     """
@@ -354,31 +356,6 @@ def _bilinear(xp, quads, h, w, off, u, v):
     return top * (1 - wy) + bot * wy
 
 
-#: tan(pi / 8): ``_atan2`` reduces its argument below it.
-_TAN_PI_8 = 0.41421356237309503
-
-
-def _atan2(xp, y, x):
-    """atan2(y, x) in float32 accuracy (|error| <= 3e-7 rad; XLA's own is 2.5e-7),
-    vectorised: XLA's CPU atan2 took ~35 ns an element, a third of the sky table's
-    time.
-    Octant reduction to a = min / max in [0, 1], then a -> (a - 1) / (a + 1) above
-    tan(pi / 8) (+ pi / 4), and Cephes' ``atanf`` polynomial (S. L. Moshier, Cephes
-    Math Library 2.2, ``atanf.c``). Signed zeros as IEEE's atan2."""
-    ax, ay = xp.abs(x), xp.abs(y)
-    hi, lo = xp.maximum(ax, ay), xp.minimum(ax, ay)
-    a = lo / xp.where(hi > 0, hi, 1)
-    big = a > _TAN_PI_8
-    a = xp.where(big, (a - 1) / (a + 1), a)
-    z = a * a
-    p = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z
-         - 3.33329491539e-1) * z * a + a
-    p = xp.where(big, p + np.pi / 4, p)
-    p = xp.where(ay > ax, np.pi / 2 - p, p)
-    p = xp.where(xp.signbit(x), np.pi - p, p)
-    return xp.where(xp.signbit(y), -p, p)
-
-
 def _table_fn(xp):
     """The tabulation of ``sky_table`` for env samples (C,): c (C, 3, N) float64,
     in the inputs' dtype; ``xp``: jax.numpy (one chunk, under ``_table_all_fn``'s
@@ -404,9 +381,9 @@ def _table_fn(xp):
         # Not normalised: (u, v) and the sign test below are scale-free (|d| ~ 1, so
         # no hypot either; the division was ~10 % of the tabulation).
         d = cl[..., :1] * t[:, None] + cl[..., 1:2] * b[:, None] + cl[..., 2:] * r[:, None]
-        u = _atan2(xp, d[..., 0], -d[..., 2]) / (2.0 * xp.pi)
+        u = atan2(xp, d[..., 0], -d[..., 2]) / (2.0 * xp.pi)
         u = u - xp.floor(u)
-        v = _atan2(xp, xp.sqrt(d[..., 0] ** 2 + d[..., 2] ** 2), d[..., 1]) / xp.pi
+        v = atan2(xp, xp.sqrt(d[..., 0] ** 2 + d[..., 2] ** 2), d[..., 1]) / xp.pi
         rad = (_bilinear(xp, quads, lh[lo], lw[lo], loff[lo], u, v) * (1 - fl)[:, None]
                + _bilinear(xp, quads, lh[lo + 1], lw[lo + 1], loff[lo + 1], u, v) * fl[:, None])
         lit = (q > 0) & (xp.sum(d * nrm[:, None], -1) > 0)

@@ -216,11 +216,12 @@ def test_geometry_of_a_pixel_subset_equals_those_pixels_of_the_whole(sun_probe):
 
 
 def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
-    # The sun groups' cosines are computed per component in pieces (geometry._sun_group);
-    # reference: bsdf.base.cosines of JAX arrays (its other code path: np.cross-like
-    # jnp.cross and sums over the last axis) on the broadcast (L, Q, 3) directions,
-    # across piece boundaries and at h = 0 (light opposite the view) and h along n.
-    from fitter import geometry
+    # The sun groups' cosines are computed per component in pieces (suncells._sun_cells),
+    # stored flat group after group (``SunCells``); reference: bsdf.base.cosines of JAX
+    # arrays (its other code path: np.cross-like jnp.cross and sums over the last axis)
+    # on the broadcast (L, Q, 3) directions, across piece boundaries and at h = 0
+    # (light opposite the view) and h along n; a second group of one light after it.
+    from fitter import suncells
     from fitter.bsdf.base import Cosines, cosines
 
     rng = np.random.default_rng(3)
@@ -230,19 +231,28 @@ def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
     dirs = unit(rng.normal(size=(7, 3)))
     dirs[0], dirs[1] = -v[4], unit(2 * (n[9] @ v[9]) * n[9] - v[9])
     w = 0.5 + rng.random(301)
-    monkeypatch.setattr(geometry, "SUN_CHUNK", 50)  # 7 pieces of 7 lights x 7 samples
-    _, cos, weight, _ = geometry._sun_group(n, v, w, np.arange(301), dirs, np.ones((7, 3)))
+    monkeypatch.setattr(suncells, "SUN_CHUNK", 50)  # 7 pieces of 7 lights x 7 samples
+    cells = suncells._sun_cells([(n, v, w, np.arange(301), dirs, np.ones((7, 3))),
+                                 (n[:40], v[:40], w[:40], np.arange(40) + 5, dirs[2:3],
+                                  np.full((1, 3), 2.0))])
+    np.testing.assert_array_equal(cells.index, np.concatenate([np.arange(301),
+                                                               np.arange(40) + 5]))
     d = jnp.broadcast_to(jnp.asarray(dirs)[:, None], (7, 301, 3))
     ref = Cosines(*(np.asarray(a) for a in cosines(jnp.broadcast_to(jnp.asarray(n), d.shape), d,
                                                    jnp.broadcast_to(jnp.asarray(v), d.shape))))
-    lit = (ref.cos_i > 0) & (ref.cos_o > 0)
-    np.testing.assert_array_equal(weight > 0, lit)  # w > 0 everywhere
     # No cotangents for the sun's cells (memory): the lobe takes them from the cosines.
-    assert cos.cot_i is None and cos.cot_o is None
-    for got, want, stand_in in zip(cos[:6], ref[:6], (1.0, 1.0, 1.0, 1.0, 1.0, 0.0),
-                                   strict=True):
-        np.testing.assert_allclose(got, np.where(lit, want, stand_in), rtol=1e-13, atol=1e-15)
-    np.testing.assert_allclose(weight, np.where(lit, w * ref.cos_i, 0.0), rtol=1e-13, atol=1e-15)
+    assert cells.cosines.cot_i is None and cells.cosines.cot_o is None
+    for (_, cos, weight, color), pick in zip(cells.groups(), (np.s_[:, :], np.s_[2:3, :40]),
+                                             strict=True):
+        want_cos = ref.map(lambda a: a[pick])  # noqa: B023
+        lit = (want_cos.cos_i > 0) & (want_cos.cos_o > 0)
+        np.testing.assert_array_equal(weight > 0, lit)  # w > 0 everywhere
+        for got, want, stand_in in zip(cos[:6], want_cos[:6], (1.0, 1.0, 1.0, 1.0, 1.0, 0.0),
+                                       strict=True):
+            np.testing.assert_allclose(got, np.where(lit, want, stand_in), rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(weight, np.where(lit, w[pick[1]] * want_cos.cos_i, 0.0),
+                                   rtol=1e-13, atol=1e-15)
+    np.testing.assert_array_equal(cells.color[1], [[2.0, 2.0, 2.0]])
     assert lit.any() and not lit.all()
     dn = np.broadcast_to(dirs[:, None], (7, 301, 3))  # cosines' own NumPy path, every pair
     host = cosines(np.broadcast_to(n, dn.shape), dn, np.broadcast_to(v, dn.shape))
@@ -376,7 +386,8 @@ def test_a_small_sky_table_made_on_the_host_is_the_devices(sun_probe, monkeypatc
     scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe))
     env = load_environment(scene.environment, None)
     env = jax.tree_util.tree_map(np.asarray, env)
-    lights = envlight.env_lights("envmap", env.image, env.constant, detail=envlight.Detail(rings=2))
+    lights = envlight.env_lights("envmap", env.image, env.constant,
+                                 detail=envlight.Detail(rings=2))
     host = build_geometry(scene, "envmap", env, lights)
     assert isinstance(host.env_color, np.ndarray)  # made on the host
     monkeypatch.setattr(skystencil, "HOST_TABLE_CELLS", 0)

@@ -188,7 +188,7 @@ def test_an_environment_sun_marks_highlight_pixels(tmp_path):
     high = np.nonzero(label == 1)[0]
     assert high.size > 0
     # Those pixels' normals lie near the half vector of the sun and the view.
-    idx, cos, _, _ = geo.sun[0]
+    idx, cos, _, _ = next(geo.sun.groups())
     peak = np.asarray(idx)[np.argmax(np.max(np.asarray(cos.cos_h), axis=0))]
     assert np.max(np.asarray(cos.cos_h)) > np.cos(_adequacy.HIGHLIGHT_ANGLE)
     assert peak in high or label[peak] == 2

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from fitter import skystencil
+from fitter.atan2 import atan2
 
 
 def _samples(rng, count, nodes):
@@ -100,14 +101,14 @@ def test_the_tables_bilinear_lookup_is_mitsubas_on_every_level():
             np.testing.assert_allclose(np.asarray(got), bilinear(img, u, v), rtol=1e-12, atol=0)
 
 
-#: ``skystencil._atan2``'s stated accuracy (float32 inputs), radians.
+#: ``fitter.atan2.atan2``'s stated accuracy (float32 inputs), radians.
 ATAN2_ATOL = 3e-7
 
 
 @pytest.mark.parametrize("xp", [jnp, np])
 def test_the_tables_atan2_is_numpys_to_float32_accuracy(xp):
-    """The sky table's vectorised atan2 against NumPy's float64 ``arctan2`` of
-    the same float32 inputs: random points of every octant and scale, the axes,
+    """The sky table's vectorised atan2 (``fitter.atan2``) against NumPy's float64
+    ``arctan2`` of the same float32 inputs: random points of every octant and scale, the axes,
     the octant boundaries |y| = |x| and |y| = tan(pi / 8) |x|, and IEEE's signed
     zeros (atan2(+-0, -0) = +-pi, atan2(+-0, +0) = +-0)."""
     rng = np.random.default_rng(5)
@@ -119,7 +120,7 @@ def test_the_tables_atan2_is_numpys_to_float32_accuracy(xp):
                         [-0.0, 0.0], [0.0, -0.0], [-0.0, -0.0], [1e-30, -1.0]])
     y = np.concatenate([y, special[:, 0]]).astype(np.float32)
     x = np.concatenate([x, special[:, 1]]).astype(np.float32)
-    got = np.asarray(skystencil._atan2(xp, xp.asarray(y), xp.asarray(x)), np.float64)
+    got = np.asarray(atan2(xp, xp.asarray(y), xp.asarray(x)), np.float64)
     want = np.arctan2(y.astype(np.float64), x.astype(np.float64))
     np.testing.assert_allclose(got, want, rtol=0, atol=ATAN2_ATOL)
     np.testing.assert_array_equal(np.signbit(got[-5:]), np.signbit(want[-5:]))

@@ -153,6 +153,11 @@ def cotangents(c: Cosines):
 COT_NORMAL = 1e30
 
 
+#: Cosines where a sample is unlit (its weight is 0): finite stand-ins, so no lobe
+#: formula sees a zero or negative cosine there (the double-where rule).
+UNLIT = Cosines(1.0, 1.0, 1.0, 1.0, 1.0, 0.0, COT_NORMAL, COT_NORMAL)
+
+
 def _cot(c, xp):
     """cos / sin of the angle whose cosine is ``c`` (``COT_NORMAL`` where sin = 0;
     the double where keeps sin = 0 out of the division and its derivative)."""

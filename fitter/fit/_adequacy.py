@@ -73,7 +73,8 @@ def _regions(geometry) -> np.ndarray:
     else:  # no lights: the view cosine from the normal and the camera ray
         cos_v = -np.sum(np.asarray(geometry.normal) * np.asarray(geometry.ray_dir), axis=-1)
         grazing = np.where(hit, cos_v, 1.0).min(axis=1) < RIM_COS
-    for index, cos, weight, _ in getattr(geometry, "sun", ()):  # an environment's sun cells
+    sun = getattr(geometry, "sun", ())
+    for index, cos, weight, _ in sun.groups() if sun else ():  # an environment's sun cells
         near = (np.asarray(cos.cos_h) >= np.cos(HIGHLIGHT_ANGLE)) & (np.asarray(weight) > 0)
         label[np.asarray(index)[near.any(axis=0)]] = 1
     label[grazing | ~hit.all(axis=1)] = 2
