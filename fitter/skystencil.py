@@ -357,9 +357,9 @@ def _bilinear(xp, quads, h, w, off, u, v):
 
 
 def _table_fn(xp):
-    """The tabulation of ``sky_table`` for env samples (C,): c (C, 3, N) float64,
-    in the inputs' dtype; ``xp``: jax.numpy (one chunk, under ``_table_all_fn``'s
-    jit) or NumPy (a small table, on the host)."""
+    """The tabulation of ``sky_table`` for env samples (C,): c (C, 3, N), computed
+    in the inputs' dtype and returned as float64; ``xp``: jax.numpy (one chunk,
+    under ``_table_all_fn``'s jit) or NumPy (a small table, on the host)."""
 
     def fn(nrm, wo, wt, q_tab, cen_tab, quads, lh, lw, loff, lo, fl):
         co = xp.clip(xp.sum(nrm * wo, -1), 0.0, 1.0)

@@ -422,3 +422,49 @@ def test_a_parameter_free_lobes_constant_shape_is_known_before_tracing(sun_probe
     lambert = Material.from_params({"lambert.rho_d": 0.5}).lobe_objects[0]
     assert render_mod._constant_shape(lambert, {}) == pytest.approx(1 / np.pi, rel=1e-15)
     assert render_mod._constant_shape_of.cache_info().hits == 1
+
+
+@pytest.mark.parametrize("params", [
+    {"torrance_sparrow.m": 0.1, "torrance_sparrow.eta": 1.5},
+    {"torrance_sparrow.m": 0.2, "torrance_sparrow.fresnel": "conductor",
+     "torrance_sparrow.eta": [0.143, 0.3753, 1.442], "torrance_sparrow.k": [3.983, 2.39, 1.6]},
+    {"phong.e": 40.0}])
+def test_the_sun_groups_one_lobe_evaluation_is_each_groups_light_sum(sun_probe, params):
+    """``render._sun_unit`` evaluates a lobe once on every sun group's flat (light,
+    sample) pairs (``SunCells``). Reference: per group, sum over its lights of the
+    lobe's shape on that group's (L, Q) cosines x weight x colour, and its
+    derivative by JAX's forward mode through the shape (not ``shape_grad``), for
+    a colourless, an RGB (conductor) and a hand-differentiated (Phong) lobe."""
+    from fitter import render as render_mod
+    from fitter.render import _param_vector
+
+    scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe))
+    mat = Material.from_params(params)
+    r = cached_renderer(scene, mat, jnp.dtype(jnp.float64), None)
+    geo = jax.tree_util.tree_map(jnp.asarray, r.geometry)
+    assert len(geo.sun.weight) == 2  # the highlight's cells and the merged light
+    lobe = mat.lobe_objects[0]
+    opts = mat.options_of(lobe.name)
+    p = {k.split(".", 1)[1]: jnp.asarray(v) for k, v in r.params({
+        k: v for k, v in params.items() if not isinstance(v, str)}).items()
+         if k.startswith(lobe.name + ".")}
+    theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
+
+    def got(t):
+        return render_mod._sun_unit(lobe, {**unflatten(t), lobe.scale: p[lobe.scale]}, opts,
+                                    geo.sun)
+
+    def want(t):
+        out = []
+        for _, cos, w, col in geo.sun.groups():
+            g = lobe.shape(unflatten(t), opts, jax.tree_util.tree_map(jnp.asarray, cos))
+            out.append(jnp.einsum("lq...,lq,lc->qc" if g.ndim == 2 else "lqc,lq,lc->qc",
+                                  g, jnp.asarray(w), jnp.asarray(col)))
+        return jnp.concatenate(out)
+
+    tangent = jnp.asarray(np.random.default_rng(0).normal(size=theta.shape))
+    v1, d1 = jax.jvp(got, (theta,), (tangent,))
+    v0, d0 = jax.jvp(want, (theta,), (tangent,))
+    assert float(jnp.max(jnp.abs(v0))) > 0
+    np.testing.assert_allclose(v1, v0, rtol=1e-12, atol=1e-15 * float(jnp.max(jnp.abs(v0))))
+    np.testing.assert_allclose(d1, d0, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(d0))))
