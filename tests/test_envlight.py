@@ -273,14 +273,17 @@ def _env_problem(sun_probe):
     return Problem.make(target[None], scene, mat, init=truth), truth
 
 
-def test_profile_residuals_in_batches_equal_one_point_at_a_time(sun_probe):
-    # With a sky table residuals_at evaluates SKY_BATCH points per pass (the profile's
-    # points); reference: the residuals of each point alone.
+@pytest.mark.parametrize("large", [True, False])
+def test_profile_residuals_in_batches_equal_one_point_at_a_time(sun_probe, monkeypatch, large):
+    # With a large sky table residuals_at evaluates SKY_BATCH points per pass (the
+    # profile's points), with a small one a point at a time (this scene's table is
+    # small: SKY_BATCH_ELEMENTS set to make it large); reference: each point alone.
     import functools
 
     from fitter.fit import _compile
     from fitter.fit._problem import residuals
 
+    monkeypatch.setattr(_compile, "SKY_BATCH_ELEMENTS", 0 if large else 2**62)
     problem, _ = _env_problem(sun_probe)
     data = problem.data(0)
     z0 = np.asarray(problem.z_init())

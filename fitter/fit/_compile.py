@@ -84,21 +84,26 @@ def jacobian_full(spec: Spec, z, data):
 #: quickstart's 36 profile points: 75 ms, against 160 ms one at a time with
 #: loop-invariant code motion (as before) and 100 ms without.
 MAP_BATCH_ELEMENTS = 2 * 10**7
-#: Points per evaluation under an environment lighting opaque lobes: the sky sum
-#: reads its whole table (0.4 GB at 128^2) per evaluation, so several points
-#: share one pass (env_plastic's 36 profile points: 2.3 s one by one, 1.5 s six
-#: at a time, for ~0.1 GB more). 6 divides the profile's 6 (n + 1) points, so no
-#: second body is compiled for a remainder.
+#: Points per evaluation under an environment lighting opaque lobes, where the
+#: sky table has over ``SKY_BATCH_ELEMENTS`` elements: the sky sum reads its
+#: whole table (0.4 GB at 128^2) per evaluation, so several points share one
+#: pass (env_plastic's 36 points on every pixel: 1.01 s one by one, 0.89 s six
+#: at a time, for ~0.1 GB more). 6 divides the profile's 6 (n + 1) points, so
+#: no second body is compiled for a remainder. A smaller table (the cost
+#: profile's pixel subset with its own samples' rows, 12 M elements) goes one
+#: point at a time: 0.20-0.21 s against 0.21-0.24 s, and its executable
+#: compiles in 0.44-0.51 CPU-s instead of 0.74-0.78 (no batched graph).
 SKY_BATCH = 6
+SKY_BATCH_ELEMENTS = 2**25
 
 
 def residuals_at(spec: Spec, zs, data, single: bool = False):
     """Residuals (k, N) at each point of ``zs`` (k, n), a few points at a time
-    (``lax.map``: ``SKY_BATCH`` with a sky table, else ``MAP_BATCH_ELEMENTS``;
+    (``lax.map``: ``SKY_BATCH`` with a large sky table, else ``MAP_BATCH_ELEMENTS``;
     no Jacobian). ``single``: the model in float32 (``residuals``'; ``_profile``'s
     estimates)."""
     if data.geometry.has_sky:
-        batch = SKY_BATCH
+        batch = SKY_BATCH if np.size(data.geometry.env_color) > SKY_BATCH_ELEMENTS else 1
     else:
         size = sum(np.size(a) for a in jax.tree_util.tree_leaves(data.geometry))
         batch = MAP_BATCH_ELEMENTS // max(size, 1)
