@@ -129,26 +129,29 @@ def _columns(g, dg, q):
 FEW_LIGHTS = 4
 
 
+def _light_sum(g, weight, color, rgb):
+    """Sum over lights and samples of shape * weight * light colour: g ([T,] L, P,
+    K[, 3]) (``rgb``: the colour axis), weight (L, P, K), colour (L, 3) -> ([T,] P, 3)."""
+    if rgb or weight.shape[0] <= FEW_LIGHTS:
+        return jnp.einsum("...lpkc,lpk,lc->...pc" if rgb else "...lpk,lpk,lc->...pc",
+                          g, weight, color)
+    # Many lights (the sun's cells): K summed first; as one einsum XLA made a tiny
+    # (T, L) x (L, 3) product per pixel of the Jacobian's columns (32 x 25 k: 108 -> 63 ms).
+    return jnp.einsum("...lp,lc->...pc", jnp.sum(g * weight, -1), color)
+
+
 def _brdf_unit(lobe, p, opts, geo: Geometry):
     """Sum over the scene's lights and samples of shape * weight * light colour: (P, 3)."""
 
-    def light_sum(g, weight, color, rgb):  # g: ([T,] L, P, K[, 3]); rgb: colour axis
-        if rgb or weight.shape[0] <= FEW_LIGHTS:
-            return jnp.einsum("...lpkc,lpk,lc->...pc" if rgb else "...lpk,lpk,lc->...pc",
-                              g, weight, color)
-        # Many lights (the sun's cells): K summed first; as one einsum XLA made a tiny
-        # (T, L) x (L, 3) product per pixel of the Jacobian's columns (32 x 25 k: 108 -> 63 ms).
-        return jnp.einsum("...lp,lc->...pc", jnp.sum(g * weight, -1), color)
-
     def unit(theta, cos, weight, color):
         g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (L, P, K)
-        return light_sum(g, weight, color, g.ndim > weight.ndim)
+        return _light_sum(g, weight, color, g.ndim > weight.ndim)
 
     def unit_and_jac(theta, cos, weight, color):
         q = unflatten(theta)
         g, dg = lobe.shape_grad(q, opts, cos)
         # One (n + 1)-stack, one contraction: value and every column at once.
-        out = light_sum(_columns(g, dg, q), weight, color, g.ndim > weight.ndim)
+        out = _light_sum(_columns(g, dg, q), weight, color, g.ndim > weight.ndim)
         return out[0], jnp.moveaxis(out[1:], 0, -1)
 
     theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
@@ -171,12 +174,8 @@ def _sun_unit(lobe, p, opts, sun):
         lead = g.shape[:g.ndim - 1 - len(tail)]
         out = []
         for (n_l, n_q), a, b, w, col in zip(shapes, cuts[:-1], cuts[1:], weights, colors):
-            gi = (g[..., a:b, :] if rgb else g[..., a:b]).reshape(lead + (n_l, n_q) + tail)
-            if rgb or n_l <= FEW_LIGHTS:
-                out.append(jnp.einsum("...lpc,lp,lc->...pc" if rgb else "...lp,lp,lc->...pc",
-                                      gi, w, col))
-            else:  # many lights (the cells): as ``_brdf_unit``'s
-                out.append(jnp.einsum("...lp,lc->...pc", gi * w, col))
+            gi = (g[..., a:b, :] if rgb else g[..., a:b]).reshape(lead + (n_l, n_q, 1) + tail)
+            out.append(_light_sum(gi, w[..., None], col, rgb))  # a sample is its own "pixel"
         return jnp.concatenate(out, axis=-2)
 
     def unit(theta, cos, weights, colors):

@@ -242,7 +242,7 @@ def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
                                                    jnp.broadcast_to(jnp.asarray(v), d.shape))))
     # No cotangents for the sun's cells (memory): the lobe takes them from the cosines.
     assert cells.cosines.cot_i is None and cells.cosines.cot_o is None
-    for (_, cos, weight, color), pick in zip(cells.groups(), (np.s_[:, :], np.s_[2:3, :40]),
+    for (_, cos, weight, _), pick in zip(cells.groups(), (np.s_[:, :], np.s_[2:3, :40]),
                                              strict=True):
         want_cos = ref.map(lambda a: a[pick])  # noqa: B023
         lit = (want_cos.cos_i > 0) & (want_cos.cos_o > 0)

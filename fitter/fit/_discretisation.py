@@ -183,20 +183,20 @@ def prefetch(problem) -> None:
     flat = np.asarray(r.pixel_index)[problem.rows][rows]
     fine = scene.replace(supersampling=finer_supersampling(scene))
     lit = envlight.lit_by_environment(scene, r.material)
-    # (scene, ``_lighting``'s kind or None, material, pixels, sky-term render) of each
-    # geometry ``finer_values`` and ``ring_error`` make
-    jobs = [(fine, SUN if lit else None, finer_material(r.material), flat, False)]
-    first = single(r.material, lit)  # the first job's render in float32
+    # (scene, ``_lighting``'s kind or None, material, pixels, sky-term render, in
+    # float32) of each geometry ``finer_values`` and ``ring_error`` make
+    jobs = [(fine, SUN if lit else None, finer_material(r.material), flat, False,
+             single(r.material, lit))]
     if lit:
-        jobs.append((scene, FINER_SUN, r.material, flat, False))
+        jobs.append((scene, FINER_SUN, r.material, flat, False, False))
     if flat.size * sum(s.supersampling**2 for s, *_ in jobs) > PREFETCH_SAMPLES:
         return
     if lit and flat.size:
         jobs.append((scene.replace(lights=()), _half_rings(),
-                     _lobes(r.material, r.material.opaque), flat[::RING_STRIDE], True))
+                     _lobes(r.material, r.material.opaque), flat[::RING_STRIDE], True, False))
     base = problem.base_dir
-    keys = [_geometry_key(s, base, r.env_type, cells or False, px, first and i == 0)
-            for i, (s, cells, _, px, _) in enumerate(jobs)]
+    keys = [_geometry_key(s, base, r.env_type, cells or False, px, f32)
+            for s, cells, _, px, _, f32 in jobs]
     if keys[0] in _GEOMETRIES:  # a refit: kept
         return
     env64 = load_environment(scene.environment, base)
@@ -215,13 +215,12 @@ def prefetch(problem) -> None:
                 args, key = _renders.args_and_key(params, _dark(problem.geometry), r.env,
                                                   _sphere(scene), mats, r.env_type)
                 sky_box[1] = key, _renders.compile_render(args, mats, r.env_type, key)
-            for (s, cells, material, px, sky), box in zip(jobs, boxes):
+            for (s, cells, material, px, sky, one), box in zip(jobs, boxes):
                 lighting = _lighting(scene.environment, base, cells) if cells else None
                 if cells == FINER_SUN and (lighting is None or not lighting.sun_dir.shape[0]):
                     continue  # no sun: ``finer_values`` renders no finer sun
                 if lighting is None and sky:
                     break
-                one = first and box is boxes[0]
                 box[0] = _prepared(build_geometry(s, r.env_type, env64, lighting, pixels=px), px,
                                    one)
                 geo = _dark(box[0][0]) if sky else box[0][0]

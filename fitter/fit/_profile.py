@@ -26,7 +26,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from .._math import to_device
+from .._math import finite_rows, to_device
 
 #: The subset on (benchmarks/profile_subset.py compares it with every pixel).
 ENABLED = True
@@ -299,7 +299,7 @@ def subset_costs(spec, data, z, J, r, s2: float, cost: float, points, level: flo
         dzs, r_sub, centre = moved[:-1], r_at[:-1], (r_at[-1], moved[-1])
     rise, se = estimated_rises(J, r, dzs, r_sub, rows, weight, s2, grad, gram, centre)
     costs = cost + 0.5 * s2 * rise
-    finite = np.isfinite(r_sub @ np.ones(r_sub.shape[1]))
+    finite = finite_rows(r_sub)
     if single:  # float32's NaN or overflow may not be the image's: evaluated again
         finite &= bool(np.all(np.isfinite(centre[0])))
         costs[~finite] = np.inf
