@@ -7,7 +7,6 @@ from __future__ import annotations
 import threading
 
 import numpy as np
-import pytest
 
 import fitter
 from fitter.fit import _discretisation, _renders
@@ -126,49 +125,3 @@ def test_finer_model_in_float32_states_the_float64_errors(monkeypatch):
     assert _discretisation.single(fitter.Material.make("lambert+torrance_sparrow"), False)
     assert not _discretisation.single(phong, False)
     assert not _discretisation.single(fitter.Material.make("lambert+torrance_sparrow"), True)
-
-
-def test_the_finer_renders_compile_after_the_solves_executable(tmp_path, monkeypatch):
-    """The thread makes its geometries beside the solve's tracing but compiles
-    its renders only once the solve's executable is ready (``_discretisation.go``):
-    the cores go to what the fit waits for first. A fit that ends without
-    solving (an error) does not wait for it (``wait`` lets the thread go)."""
-    import time
-
-    from fitter.fit import _drivers
-    from fitter.imageio import write_image
-
-    img = np.full((16, 32, 3), 0.3)
-    img[5, 9] = [3000.0, 2900.0, 2500.0]
-    write_image(str(tmp_path / "sun.exr"), img)
-    scene = SCENE.replace(lights=(), environment=fitter.Environment(
-        type="envmap", file=str(tmp_path / "sun.exr")))
-    target = np.asarray(fitter.render(GLOSSY, scene.replace(supersampling=4)))
-    events = []
-    compile_render, compiled = _renders.compile_render, _drivers.compiled
-
-    def render_rec(*args, **kwargs):
-        events.append(("render", threading.current_thread().name, time.perf_counter()))
-        return compile_render(*args, **kwargs)
-
-    def compiled_rec(kind, *args, **kwargs):
-        out = compiled(kind, *args, **kwargs)
-        events.append((kind, threading.current_thread().name, time.perf_counter()))
-        return out
-
-    monkeypatch.setattr(_renders, "compile_render", render_rec)
-    monkeypatch.setattr(_drivers, "compiled", compiled_rec)
-    monkeypatch.setattr(_discretisation, "_GEOMETRIES", {})
-    monkeypatch.setattr(_renders, "EXECUTABLES", {})
-    assert fitter.fit(target, scene, "lambert+torrance_sparrow").status == "converged"
-    ready = min(t for kind, _, t in events if kind == "solve")
-    renders = [(name, t) for kind, name, t in events if kind == "render"]
-    assert renders and all(name == "fitter-finer-geometry" and t > ready for name, t in renders)
-
-    # Ended before any solve: the thread is let go and joined, not left waiting.
-    events.clear()
-    monkeypatch.setattr(_drivers, "solve_starts", lambda *a, **k: 1 / 0)
-    monkeypatch.setattr(_discretisation, "_GEOMETRIES", {})
-    with pytest.raises(ZeroDivisionError):
-        fitter.fit(target, scene, "lambert+torrance_sparrow")
-    assert not [t for t in threading.enumerate() if t.name == "fitter-finer-geometry"]

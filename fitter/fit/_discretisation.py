@@ -1,28 +1,31 @@
 """The forward model's own discretisation error, propagated into the parameters.
 
-The model integrates each pixel with k x k sub-pixel samples and, for an environment
-lighting opaque lobes, the map as sun cells and a sky stencil (``fitter.envlight``). A fit
-matches *that* image to the target, so the model's discretisation error is an error of the
-parameters the residual does not show (it is absorbed). "k vs 2k": at the fitted parameters,
-render once with the discretisation refined through the public knobs
-(``geometry.build_geometry``, ``envlight.env_lights(sun=...)``) -- 2k x 2k samples per
-pixel, a dielectric's internal bounces doubled (``finer_material``), and, separately
-(``finer_values``), sun cells of a quarter texel (``FINER_SUN``) -- and take the difference
-d = finer - fitted over the fitted pixels. Through the fit's linearisation,
+The model integrates each pixel with k x k sub-pixel samples and, for an
+environment lighting opaque lobes, the map as sun cells and a sky stencil
+(``fitter.envlight``). A fit matches *that* image to the target, so the
+model's discretisation error is an error of the parameters the residual does
+not show (it is absorbed). "k vs 2k": at the fitted parameters, render once
+with the discretisation refined through the public knobs
+(``geometry.build_geometry``, ``envlight.env_lights(sun=...)``) -- 2k x 2k
+samples per pixel, a dielectric's internal bounces doubled
+(``finer_material``), and, separately (``finer_values``), sun cells of a
+quarter texel (``FINER_SUN``) -- and take the difference d = finer - fitted
+over the fitted pixels. Through the fit's linearisation,
 
     delta_z = (J^T W J)^-1 J^T W d
 
-is how far the parameters would move were the model the finer one; its outer product is
-added to the systematic covariance (a bias stated as an error). The sky term
-(``fitter.skystencil``) is not refined: at 2k its env samples triple and, at
-``envlight.Detail.finer()``, its tabulation doubles (measured at 128^2 env_plastic: 52 s of
-a 72 s fit, peak RSS 4.8 GB, against 13 s and 1.3 GB without). Instead, its ring
-discretisation is compared with a stencil of half the rings (``ring_error``, Richardson: the
-difference / 3), and its measured accuracy against Mitsuba (``SKY_STENCIL_ACCURACY``;
-Lambert's, ``IRRADIANCE_ACCURACY``) times the fitted sky term of each kind of lobe is
-propagated the same way, all independent. Cost: finer geometries, renders of sampled pixels,
-one solve for every shift with the Jacobian already made
-(``benchmarks/discretisation_cost.py``).
+is how far the parameters would move were the model the finer one; its outer
+product is added to the systematic covariance (a bias stated as an error).
+The sky term (``fitter.skystencil``) is not refined: at 2k its env samples
+triple and, at ``envlight.Detail.finer()``, its tabulation doubles (measured
+at 128^2 env_plastic: 52 s of a 72 s fit, peak RSS 4.8 GB, against 13 s and
+1.3 GB without). Instead, its ring discretisation is compared with a stencil
+of half the rings (``ring_error``, Richardson: the difference / 3), and its
+measured accuracy against Mitsuba (``SKY_STENCIL_ACCURACY``; Lambert's,
+``IRRADIANCE_ACCURACY``) times the fitted sky term of each kind of lobe is
+propagated the same way, all independent.
+Cost: finer geometries, renders of sampled pixels, one solve for every shift
+with the Jacobian already made (``benchmarks/discretisation_cost.py``).
 """
 
 from __future__ import annotations
@@ -157,7 +160,8 @@ def _geometry_key(scene, base_dir, env_type, sun_cells, flat, single: bool = Fal
 
 
 def _sphere(scene):
-    return np.asarray(scene.sphere.center, np.float64), np.asarray(scene.sphere.radius, np.float64)
+    return (np.asarray(scene.sphere.center, np.float64),
+            np.asarray(scene.sphere.radius, np.float64))
 
 
 def _host_params(params) -> dict:
@@ -171,9 +175,8 @@ def prefetch(problem) -> None:
     fitted geometry's sky terms (``sky_terms``). They depend on the scene, pixels
     and parameters' shapes, not on the fit. NumPy (0.1 s at the quickstart's
     128^2; env_plastic's two with sun cells 1.9 s) and XLA's compile release the
-    interpreter to the solve and the profile; the compiles wait for the solve's
-    (``go``). What fails here is done again where needed (``_geometry``,
-    ``_renders.render``); ``wait`` joins the thread."""
+    interpreter to the solve and the profile. What fails here is done again
+    where needed (``_geometry``, ``_renders.render``); ``wait`` joins the thread."""
     r = problem.renderer
     scene = r.scene
     rows, _ = sample_rows(_adequacy.pixel_regions(problem.geometry), scene)
@@ -207,7 +210,11 @@ def prefetch(problem) -> None:
 
     def make():
         try:
-            made = []  # (box, geometry to render, material, float32)
+            if sky_ahead:  # ``sky_terms``' render (quick): first
+                mats = _sky_materials(r.material, _sky_kinds(r.material))
+                args, key = _renders.args_and_key(params, _dark(problem.geometry), r.env,
+                                                  _sphere(scene), mats, r.env_type)
+                sky_box[1] = key, _renders.compile_render(args, mats, r.env_type, key)
             for (s, cells, material, px, sky, one), box in zip(jobs, boxes):
                 lighting = _lighting(scene.environment, base, cells) if cells else None
                 if cells == FINER_SUN and (lighting is None or not lighting.sun_dir.shape[0]):
@@ -216,14 +223,7 @@ def prefetch(problem) -> None:
                     break
                 box[0] = _prepared(build_geometry(s, r.env_type, env64, lighting, pixels=px), px,
                                    one)
-                made.append((box, _dark(box[0][0]) if sky else box[0][0], material, one))
-            _GO.wait()
-            if sky_ahead:  # ``sky_terms``' render (the first asked for)
-                mats = _sky_materials(r.material, _sky_kinds(r.material))
-                args, key = _renders.args_and_key(params, _dark(problem.geometry), r.env,
-                                                  _sphere(scene), mats, r.env_type)
-                sky_box[1] = key, _renders.compile_render(args, mats, r.env_type, key)
-            for box, geo, material, one in made:
+                geo = _dark(box[0][0]) if sky else box[0][0]
                 args, key = _renders.args_and_key(params, geo, env64, _sphere(scene), material,
                                                   r.env_type, one)
                 box[1] = key, _renders.compile_render(args, material, r.env_type, key, one)
@@ -232,7 +232,6 @@ def prefetch(problem) -> None:
 
     thread = threading.Thread(target=make, name="fitter-finer-geometry", daemon=True)
     wait()  # an earlier fit's, unused
-    _GO.clear()
     _AHEAD.clear()
     _AHEAD.update({key: (thread, box) for key, box in zip(keys, boxes)})
     if sky_ahead:
@@ -246,7 +245,6 @@ def _joined(key) -> list:
     ahead = _AHEAD.pop(key, None)
     if ahead is None:
         return [None, None]
-    go()
     ahead[0].join()
     if ahead[1][1] is not None and ahead[1][1][0] not in _renders.EXECUTABLES:
         _renders.keep(*ahead[1][1])
@@ -256,16 +254,8 @@ def _joined(key) -> list:
 def wait() -> None:
     """Join the thread ``prefetch`` started, if any (its work stays for the fit
     it was made for): no thread outlives a fit."""
-    go()
     for thread, _ in list(_AHEAD.values()):
         thread.join()
-
-
-#: Set (``go``) once the solve's executable is ready (or the thread's work is needed): until
-#: then ``prefetch``'s thread makes geometries but compiles nothing (the solve's is awaited).
-_GO = threading.Event()
-go = _GO.set
-go()
 
 
 def _prepared(geo, flat, single: bool = False):

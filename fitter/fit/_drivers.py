@@ -225,7 +225,6 @@ def solve_starts(problem: Problem, z0s, data, say=_quiet, what: str = ""):
     z0s = np.asarray(z0s)
     one = problem.cast(z0s[:1])
     solve, t_compile = compiled("solve", problem.spec, (one, data), **problem.static)
-    _discretisation.go()  # the finer renders' compiles, beside the solve's run
     outs, n = [], len(z0s)
     for i in range(n):  # the line stands while the start solves
         best_so_far = (f" (best cost so far {min(float(o[3][0]) for o in outs):.4g})"
