@@ -18,36 +18,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._keep import derived
-from ._math import to_device
 from .bsdf.base import UNLIT, Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
-from .compilation_cache import FAST_COMPILE
-from .environment import EnvData, lookup
+from .environment import EnvData, host_lookup
 from .scene import DirectionalLight, PointLight, Scene
 from .suncells import SunCells, sun_samples
-
-_LOOKUP = jax.jit(lookup, static_argnums=0, compiler_options=FAST_COMPILE)
-#: Directions per call of ``_LOOKUP``: the geometries of one fit (the fitted one,
-#: the stated errors' finer ones) share one executable, not one each (~0.1 s of
-#: compiling each on a first run). (In NumPy the four took 0.28 s, more than the
-#: executable's compile and runs.)
-LOOKUP_CHUNK = 1 << 16
-
-
-def _miss_radiance(env_type: str, env: EnvData, d) -> np.ndarray:
-    """Radiance (..., 3) of an envmap from directions ``d`` (..., 3), float64, in
-    ``LOOKUP_CHUNK`` pieces (the last padded)."""
-    flat = d.reshape(-1, 3)
-    n = flat.shape[0]
-    out = np.empty((n + (-n) % LOOKUP_CHUNK, 3))
-    for i in range(0, n, LOOKUP_CHUNK):
-        part = flat[i:i + LOOKUP_CHUNK]
-        if part.shape[0] < LOOKUP_CHUNK:  # any unit direction
-            part = np.concatenate([part, np.broadcast_to([0.0, 1.0, 0.0],
-                                                         (LOOKUP_CHUNK - part.shape[0], 3))])
-        out[i:i + LOOKUP_CHUNK] = np.asarray(_LOOKUP(env_type, env, to_device(part)))
-    return out[:n].reshape(d.shape)
-
 
 #: Rows of a device array (``Geometry.subset`` of the sky irradiance, which may
 #: still be being computed: no wait for it).
@@ -329,11 +304,9 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     t = intersect_sphere(o, d, sph.center, sph.radius)
     hit_all = np.isfinite(t)
 
-    if env_type == "envmap":
-        # Compiled lookups: op by op it compiled ~50 kernels (3 s of a first fit).
-        miss_rad = _miss_radiance(env_type, env, d)  # (H, W, K, 3)
-    else:  # a constant: no device round trip (each eager op compiles a kernel)
-        miss_rad = np.broadcast_to(np.asarray(env.constant, dtype=np.float64), d.shape)
+    # On the host: as eager JAX ops it compiled ~50 kernels, one executable 0.1 s of
+    # a first fit's compiling.
+    miss_rad = host_lookup(env_type, env, d)  # (H, W, K, 3)
     background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
 
     active = hit_all.any(axis=2).reshape(-1)
