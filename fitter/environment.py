@@ -43,17 +43,16 @@ def load_environment(env: Environment, base_dir: str | None = None) -> EnvData:
     return EnvData(to_device(np.zeros((1, 1, 3))), to_device(rad))
 
 
-def _uv_and_polar(v, xp=jnp):
+def _uv_and_polar(v):
     """(u, v', off_pole, rho) of unit directions (..., 3): Mitsuba's envmap
-    coordinates, where u is defined (not at a pole) and rho = |v_xz|
-    (``xp``: jax.numpy or NumPy)."""
+    coordinates, where u is defined (not at a pole) and rho = |v_xz|."""
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     r2 = x * x + z * z
     off_pole = r2 > 0  # at the poles u is arbitrary; atan2(0, 0) has a NaN gradient
-    u = xp.arctan2(xp.where(off_pole, x, 0.0), xp.where(off_pole, -z, 1.0)) / (2.0 * xp.pi)
-    u = u - xp.floor(u)
-    rho = safe_sqrt(r2) if xp is jnp else np.sqrt(r2)
-    return u, xp.arctan2(rho, y) / xp.pi, off_pole, rho
+    u = jnp.arctan2(jnp.where(off_pole, x, 0.0), jnp.where(off_pole, -z, 1.0)) / (2.0 * jnp.pi)
+    u = u - jnp.floor(u)
+    rho = safe_sqrt(r2)
+    return u, jnp.arctan2(rho, y) / jnp.pi, off_pole, rho
 
 
 def direction_to_uv(v):
@@ -62,19 +61,19 @@ def direction_to_uv(v):
     return u, vv
 
 
-def _bilinear(img, u, v, xp=jnp):
+def _bilinear(img, u, v):
     """Bilinear lookup of ``img`` (H, W, 3) at (u, v) and the local slopes
-    (d value / du, d value / dv), each (..., 3) (``xp``: jax.numpy or NumPy)."""
+    (d value / du, d value / dv), each (..., 3)."""
     h, w = img.shape[0], img.shape[1]
     fx = u * w - 0.5
     fy = v * (h - 1)
-    x0 = xp.floor(fx)
-    y0 = xp.clip(xp.floor(fy), 0, h - 2)
+    x0 = jnp.floor(fx)
+    y0 = jnp.clip(jnp.floor(fy), 0, h - 2)
     wx = (fx - x0)[..., None]
     wy = (fy - y0)[..., None]
-    x0i = x0.astype(xp.int32) % w
+    x0i = x0.astype(jnp.int32) % w
     x1i = (x0i + 1) % w
-    y0i = y0.astype(xp.int32)
+    y0i = y0.astype(jnp.int32)
     y1i = y0i + 1
     a, b = img[y0i, x0i], img[y0i, x1i]
     c, d = img[y1i, x0i], img[y1i, x1i]
@@ -118,12 +117,3 @@ def lookup(env_type: str, data: EnvData, dirs):
     if env_type != "envmap":
         return jnp.broadcast_to(data.constant, dirs.shape)
     return _envmap(data.image, dirs)
-
-
-def host_lookup(env_type: str, data: EnvData, dirs) -> np.ndarray:
-    """``lookup`` in NumPy, float64, of NumPy directions (..., 3): what the set-up
-    tabulates once per scene (the background), with no executable compiled."""
-    if env_type != "envmap":
-        return np.broadcast_to(np.asarray(data.constant, np.float64), np.shape(dirs))
-    u, v, _, _ = _uv_and_polar(np.asarray(dirs, np.float64), np)
-    return _bilinear(np.asarray(data.image, np.float64), u, v, np)[0]

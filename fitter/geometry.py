@@ -18,11 +18,56 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._keep import derived
+from ._math import to_device
 from .bsdf.base import UNLIT, Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
-from .environment import EnvData, host_lookup
+from .compilation_cache import FAST_COMPILE
+from .environment import EnvData, lookup
+from .envlight import sky_sum
 from .scene import DirectionalLight, PointLight, Scene
 from .suncells import SunCells, sun_samples
+
+_LOOKUP = jax.jit(lookup, static_argnums=0, compiler_options=FAST_COMPILE)
+#: Directions per call of ``_LOOKUP``: the geometries of one fit (the fitted one,
+#: the stated errors' finer ones) share one executable, not one each (~0.1 s of
+#: compiling each on a first run).
+LOOKUP_CHUNK = 1 << 16
+
+
+def _miss_radiance(env_type: str, env: EnvData, d) -> np.ndarray:
+    """Radiance (..., 3) of an envmap from directions ``d`` (..., 3), float64, in
+    ``LOOKUP_CHUNK`` pieces (the last padded)."""
+    flat = d.reshape(-1, 3)
+    n = flat.shape[0]
+    out = np.empty((n + (-n) % LOOKUP_CHUNK, 3))
+    for i in range(0, n, LOOKUP_CHUNK):
+        part = flat[i:i + LOOKUP_CHUNK]
+        if part.shape[0] < LOOKUP_CHUNK:  # any unit direction
+            part = np.concatenate([part, np.broadcast_to([0.0, 1.0, 0.0],
+                                                         (LOOKUP_CHUNK - part.shape[0], 3))])
+        out[i:i + LOOKUP_CHUNK] = np.asarray(_LOOKUP(env_type, env, to_device(part)))
+    return out[:n].reshape(d.shape)
+
+
+@functools.partial(jax.jit, static_argnums=5)
+def _sky_irradiance(h, window, pos, c, rows, n: int):
+    """(n, 3) each active pixel's sky irradiance: ``sky_sum`` of the node weights
+    ``h`` per env sample, summed over the samples of each pixel ``rows`` (R,; -1:
+    padding). One executable (op by op, its dozen ops were compiled one by one
+    on every first run, ~0.5 s), left running: the set-up goes on (the fit's
+    tracing) while the sky table is computed."""
+    irr = jnp.where((rows >= 0)[:, None], sky_sum(h, window, pos, c), 0.0)
+    return jax.ops.segment_sum(irr, jnp.maximum(rows, 0), n)
+
+
+def _host_irradiance(h, window, pos, c, rows, n: int):
+    """``_sky_irradiance`` of a table tabulated on the host (``sky_table``'s small
+    ones), in NumPy: no executable compiled for its shapes."""
+    irr = np.where((rows >= 0)[:, None], sky_sum(h, window, pos, c, xp=np), 0.0)
+    out = np.zeros((n, 3))
+    np.add.at(out, np.maximum(rows, 0), irr)
+    return out
+
 
 #: Rows of a device array (``Geometry.subset`` of the sky irradiance, which may
 #: still be being computed: no wait for it).
@@ -304,9 +349,11 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     t = intersect_sphere(o, d, sph.center, sph.radius)
     hit_all = np.isfinite(t)
 
-    # On the host: as eager JAX ops it compiled ~50 kernels, one executable 0.1 s of
-    # a first fit's compiling.
-    miss_rad = host_lookup(env_type, env, d)  # (H, W, K, 3)
+    if env_type == "envmap":
+        # Compiled lookups: op by op it compiled ~50 kernels (3 s of a first fit).
+        miss_rad = _miss_radiance(env_type, env, d)  # (H, W, K, 3)
+    else:  # a constant: no device round trip (each eager op compiles a kernel)
+        miss_rad = np.broadcast_to(np.asarray(env.constant, dtype=np.float64), d.shape)
     background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
 
     active = hit_all.any(axis=2).reshape(-1)
@@ -340,13 +387,15 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
         rows, e_n, e_v, e_w = rows[ok], e_n[ok], e_v[ok], e_w[ok]
         det = lighting.detail
         if lighting.sky is not None:
-            e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub), det.rings)
-            # (on the device the irradiance may still be being computed: the set-up
-            # goes on, the fit's tracing, while the sky table is made)
-            order, node, frac, e_c, e_irr = sky_table(
-                lighting.sky, e_n, e_v, e_w, nodes=det.nodes, rings=det.rings,
-                irradiance=(e_nw.sum(-1), rows, pixel_index.size))
+            order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes,
+                                               rings=det.rings)
             rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
+            e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub), det.rings)
+            if isinstance(e_c, np.ndarray):  # a small table, made on the host
+                e_irr = _host_irradiance(e_nw.sum(-1), node, frac, e_c, rows, pixel_index.size)
+            else:
+                e_irr = _sky_irradiance(to_device(e_nw.sum(-1)), node, frac, e_c, rows,
+                                        pixel_index.size)
     if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))

@@ -402,40 +402,25 @@ HOST_TABLE_CELLS = 2**20
 
 @functools.cache
 def _table_all_fn():
-    """Jitted ``_table_fn`` over chunks (n, step, ...) -> (n x step / B, rows, N) float64,
-    and each pixel's irradiance (``_irradiance``) from it in the same executable (its
-    own was ~0.25 CPU-s of a first env fit to trace and compile)."""
+    """Jitted ``_table_fn`` over chunks (n, step, ...) -> (n x step / B, rows, N) float64."""
     import jax
     import jax.numpy as jnp
 
     from .compilation_cache import NO_LIBRARY_FUSIONS
 
-    def run(nrm, wo, wt, h, window, pos, pixel, *consts, rows, n):
+    def run(nrm, wo, wt, *consts, rows):
         out = jax.lax.map(lambda x: _table_fn(jnp)(*x, *consts), (nrm, wo, wt))
-        c = out.reshape((-1, rows, out.shape[-1]))
-        return c, _irradiance(h, window, pos, c, pixel, n, jnp)
+        return out.reshape((-1, rows, out.shape[-1]))
 
-    return jax.jit(run, static_argnames=("rows", "n"), compiler_options=NO_LIBRARY_FUSIONS)
+    return jax.jit(run, static_argnames="rows", compiler_options=NO_LIBRARY_FUSIONS)
 
 
-def _irradiance(h, window, pos, c, pixel, n: int, xp):
-    """(n, 3) each pixel's sky irradiance: ``sky_sum`` of the node weights ``h`` (T,
-    N) per env sample, summed over each pixel's samples (``pixel`` (R,): its row,
-    -1 for padding)."""
-    if not n:  # (not asked for)
-        return xp.zeros((0, 3))
-    irr = xp.where((pixel >= 0)[:, None], sky_sum(h, window, pos, c, xp=xp), 0.0)
-    if xp is np:
-        out = np.zeros((n, 3))
-        np.add.at(out, np.maximum(pixel, 0), irr)
-        return out
-    import jax
-
-    return jax.ops.segment_sum(irr, xp.maximum(pixel, 0), n)
+def _table_all(*args, rows):
+    return _table_all_fn()(*args, rows=rows)
 
 
 def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
-              chunk: int = 2048, dtype=np.float32, rings: int = 1, irradiance=None):
+              chunk: int = 2048, dtype=np.float32, rings: int = 1):
     """Env samples in blocks (``blocks``) and their sky-stencil weights.
 
     ``normal``, ``view`` (S, 3): unit normal and unit direction to the camera
@@ -451,10 +436,6 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     ``HOST_TABLE_CELLS`` samples x cells (made on the host, nothing compiled).
 
     ``rings``: the stencil's ring density (``Detail.rings``).
-    ``irradiance``: (h (T, N) the node weights summed over a cell's points,
-    pixel (S,) each sample's pixel row, n pixels) to also return each pixel's sky
-    irradiance (n, 3), the sum over its samples of ``sky_sum`` of h, made with c
-    (on the device: in its executable, and left running).
     ``dtype``: the tabulation runs in float32 by default (c is returned as
     float64 for the float64 sums): c only carries the sky's radiance and
     geometric weights, smooth in the sample's directions, so rounding them
@@ -473,11 +454,8 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     node, fr = _node_of(np.arccos(np.clip(np.sum(normal * view, -1), 0.0, 1.0)), nodes)
     order, window, pos = blocks(node, fr, nodes)
     n = size_tab.shape[1]
-    h, pixel, n_pix = irradiance if irradiance is not None else (np.zeros((nodes, n)),
-                                                                  np.zeros(0, np.int64), 0)
-    done = (lambda *out: out if irradiance is not None else out[:4])  # noqa: E731
     if not order.size:
-        return done(order, window, pos, np.zeros((0, 3 * BLOCK, n)), np.zeros((n_pix, 3)))
+        return order, window, pos, np.zeros((0, 3 * BLOCK, n))
     nb = window.shape[0]
     real = order >= 0
     if np.count_nonzero(real) * n <= HOST_TABLE_CELLS:
@@ -488,9 +466,7 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
         with np.errstate(all="ignore"):  # (NumPy warns where JAX computes and discards)
             c[real] = _table_fn(np)(*(np.asarray(x, dtype) for x in (
                 normal[pick], view[pick], weight[pick])), *consts)
-        c = c.reshape(nb, 3 * BLOCK, n)
-        return done(order, window, pos, c,
-                    _irradiance(h, window, pos, c, _pixels(pixel, order), n_pix, np))
+        return order, window, pos, c.reshape(nb, 3 * BLOCK, n)
     n_chunks = -(-order.size // max(chunk, BLOCK))
     per = -(-nb // n_chunks)  # blocks per chunk
     extra = (-nb) % per  # whole padding blocks: every chunk the same shape
@@ -508,12 +484,6 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     consts = [flt(a) for a in (q_tab, cen_tab, quads, lh, lw, loff, lo, fl)]
     # One jitted map over the chunks writing straight into the (nb, B x 3, N) float64
     # table: no host copy of it (a fresh 0.5 GB costs seconds of page faults here).
-    c, irr = _table_all_fn()(*(flt(x.reshape((-1, step) + x.shape[1:])) for x in (nrm, wo, wt)),
-                             to_device(h), to_device(window), to_device(pos),
-                             to_device(_pixels(pixel, order)), *consts, rows=3 * BLOCK, n=n_pix)
-    return done(order, window, pos, c, irr)
-
-
-def _pixels(pixel, order):
-    """Each blocked sample's pixel row (-1 for padding) of ``pixel`` (S,) per sample."""
-    return np.where(order < 0, -1, pixel[np.maximum(order, 0)] if pixel.size else -1)
+    c = _table_all(*(flt(x.reshape((-1, step) + x.shape[1:])) for x in (nrm, wo, wt)),
+                   *consts, rows=3 * BLOCK)
+    return order, window, pos, c

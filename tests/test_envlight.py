@@ -407,28 +407,24 @@ def test_a_small_sky_table_made_on_the_host_is_the_devices(sun_probe, monkeypatc
                                rtol=FLOAT32_RTOL, atol=0)
 
 
-def test_a_parameter_free_lobes_constant_shape_is_read_from_its_trace():
-    """Lambert's shape is the constant 1/pi (closed form), found without compiling
-    or running anything (a first env fit's tracing used to wait for it behind the
-    sky table); a shape that varies with the directions is not taken as one."""
-    import dataclasses
+def test_a_parameter_free_lobes_constant_shape_is_known_before_tracing(sun_probe):
+    """Making an env-lit renderer evaluates Lambert's constant shape (1/pi, closed
+    form) once, before the sky table is dispatched: at trace time it is read,
+    not evaluated on a device still computing the table."""
     import importlib
 
     render_mod = importlib.import_module("fitter.render")
     render_mod._constant_shape_of.cache_clear()
+    scene = SMALL.replace(environment=Environment(type="envmap", file=sun_probe),
+                          width=30)  # a scene of its own: its renderer is made here
+    cached_renderer(scene, Material.from_params({"lambert.rho_d": 0.5,
+                                                 "torrance_sparrow.m": 0.2}),
+                    jnp.dtype(jnp.float64), None)
+    info = render_mod._constant_shape_of.cache_info()
+    assert info.currsize == 1 and info.misses == 1
     lambert = Material.from_params({"lambert.rho_d": 0.5}).lobe_objects[0]
-    compiles = []
-    listener = lambda name, *a, **k: compiles.append(name)  # noqa: E731
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        with jax.enable_x64(False):  # a float32 fit asking first: still 1/pi in float64
-            const = render_mod._constant_shape(lambert, {})
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-    assert const == pytest.approx(1 / np.pi, rel=1e-15)
-    assert not [c for c in compiles if c.endswith("backend_compile_duration")]
-    varying = dataclasses.replace(lambert, name="cos_i", shape=lambda p, opts, c: c.cos_i / np.pi)
-    assert render_mod._constant_shape(varying, {}) is None
+    assert render_mod._constant_shape(lambert, {}) == pytest.approx(1 / np.pi, rel=1e-15)
+    assert render_mod._constant_shape_of.cache_info().hits == 1
 
 
 @pytest.mark.parametrize("params", [
