@@ -21,7 +21,9 @@ Usage: ``.venv/bin/python benchmarks/envlight.py [--spp 4096] [--case env_plasti
    under two point lights (the ``plastic`` scene) as the baseline of the same run.
    ``--before REF`` runs the same fits on that commit's tree too (``_trees``),
    interleaved with this one's, and ``--repeat N`` keeps each figure's minimum
-   over N runs (the machine is shared: times are upper bounds).
+   over N runs (the machine is shared: times are upper bounds) and, with
+   ``--before``, prints the paired median of the first fit's after - before
+   differences (``paired``: the verdict to trust for a small change).
 """
 
 from __future__ import annotations
@@ -223,13 +225,31 @@ def _fit_once(root, case, scene_of):
     return json.loads(line[-1])
 
 
+def paired(runs: dict, case: str) -> str:
+    """Median and spread of the after - before differences of the env case's first
+    fit, run by run (both trees ran in each round, one after the other): single
+    runs here vary by +-0.3 s, so a minimum of 5 hides differences of 0.1-0.3 s;
+    the paired median of 10 rounds resolves ~0.1 s."""
+    lines = []
+    for field in ("first", "cpu_first"):
+        a, b = (runs.get((name, case), []) for name in ("after", "before"))
+        d = np.array([x.get(field, np.nan) - y.get(field, np.nan) for x, y in zip(a, b)
+                      if x is not None and y is not None])
+        if d.size:
+            lines.append(f"{field}: after - before, paired median {np.median(d):+.2f} s, "
+                         f"mean {d.mean():+.2f}, sd {d.std():.2f} ({d.size} rounds)")
+    return "\n".join(lines)
+
+
 def cost(a):
     trees = _trees.trees(a.before, "fitter-envlight-")
     best = {}
+    runs: dict = {}  # (tree, scene) -> [record or None] per round
     for _ in range(a.repeat):  # interleaved: every tree and scene sees the same load
         for name, root in trees:
             for scene_of in ("plastic", a.case):
                 d = _fit_once(root, a.case, scene_of)
+                runs.setdefault((name.split(" ")[0], scene_of), []).append(d)
                 if d is None:
                     continue
                 key = (name, scene_of)
@@ -252,6 +272,8 @@ def cost(a):
     for (name, scene_of), d in best.items():
         if scene_of == a.case:
             print(f"fitted ({name}):", {k: np.round(v, 5).tolist() for k, v in d["params"].items()})
+    if a.before:
+        print(paired(runs, a.case))
 
 
 def main():
