@@ -249,7 +249,8 @@ def cost(a):
         for name, root in trees:
             for scene_of in ("plastic", a.case):
                 d = _fit_once(root, a.case, scene_of)
-                runs.setdefault((name.split(" ")[0], scene_of), []).append(d)
+                # (a copy: the minima below update d in place)
+                runs.setdefault((name.split(" ")[0], scene_of), []).append(d and dict(d))
                 if d is None:
                     continue
                 key = (name, scene_of)
