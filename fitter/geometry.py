@@ -11,6 +11,7 @@ carry per-sample arrays; the others are pure background.
 from __future__ import annotations
 
 import functools
+import threading
 from typing import NamedTuple
 
 import jax
@@ -331,6 +332,32 @@ def env_samples(scene: Scene, hit, t, o, d, weight, pixel_index):
     return rows, normal, -ray, wts
 
 
+def _beside(fn):
+    """Start ``fn()`` on a thread; returns what joins it and gives its result (or
+    raises its error). (A caller that fails first leaves it to end on its own.)"""
+    box: list = []
+    x64 = jax.config.jax_enable_x64  # (a thread starts with the global setting)
+
+    def run():
+        try:
+            with jax.enable_x64(x64):
+                box.append((True, fn()))
+        except BaseException as e:  # noqa: BLE001 (raised where the result is asked for)
+            box.append((False, e))
+
+    thread = threading.Thread(target=run, name="fitter-sky-table", daemon=True)
+    thread.start()
+
+    def result():
+        thread.join()
+        ok, value = box[0]
+        if not ok:
+            raise value
+        return value
+
+    return result
+
+
 def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
                    pixels=None) -> Geometry:
     """Trace the camera rays against the sphere and tabulate the lights.
@@ -383,19 +410,27 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
 
         rows, e_n, e_v, e_w = env_samples(scene, hit, t_a, o_a, d_a, weight, pixel_index)
         ok = np.sum(e_n * e_v, -1) > 0
-        sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
-        rows, e_n, e_v, e_w = rows[ok], e_n[ok], e_v[ok], e_w[ok]
         det = lighting.detail
-        if lighting.sky is not None:
-            order, node, frac, e_c = sky_table(lighting.sky, e_n, e_v, e_w, nodes=det.nodes,
-                                               rings=det.rings)
-            rows = np.where(order < 0, -1, rows[np.maximum(order, 0)] if rows.size else -1)
+
+        def sky():
+            r = rows[ok]
+            order, node, frac, e_c = sky_table(lighting.sky, e_n[ok], e_v[ok], e_w[ok],
+                                               nodes=det.nodes, rings=det.rings)
+            r = np.where(order < 0, -1, r[np.maximum(order, 0)] if r.size else -1)
             e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub), det.rings)
             if isinstance(e_c, np.ndarray):  # a small table, made on the host
-                e_irr = _host_irradiance(e_nw.sum(-1), node, frac, e_c, rows, pixel_index.size)
+                e_irr = _host_irradiance(e_nw.sum(-1), node, frac, e_c, r, pixel_index.size)
             else:
-                e_irr = _sky_irradiance(to_device(e_nw.sum(-1)), node, frac, e_c, rows,
+                e_irr = _sky_irradiance(to_device(e_nw.sum(-1)), node, frac, e_c, r,
                                         pixel_index.size)
+            return r, node, frac, e_c, e_cos, e_nw, e_irr
+
+        # The sky's tabulation compiled beside the sun's cells (XLA's compile releases the
+        # interpreter; first fit of env_plastic -0.05 to -0.09 s, paired, 10 rounds).
+        tabulated = _beside(sky) if lighting.sky is not None else None
+        sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
+        if tabulated is not None:
+            rows, node, frac, e_c, e_cos, e_nw, e_irr = tabulated()
     if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))

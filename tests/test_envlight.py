@@ -471,3 +471,14 @@ def test_the_sun_groups_one_lobe_evaluation_is_each_groups_light_sum(sun_probe, 
     assert float(jnp.max(jnp.abs(v0))) > 0
     np.testing.assert_allclose(v1, v0, rtol=1e-12, atol=1e-15 * float(jnp.max(jnp.abs(v0))))
     np.testing.assert_allclose(d1, d0, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(d0))))
+
+
+def test_work_started_beside_gives_its_result_or_raises_its_error():
+    """``geometry._beside`` (the sky's tabulation beside the sun's cells): the
+    result comes back where it is asked for, and so does an error."""
+    from fitter.geometry import _beside
+
+    assert _beside(lambda: ("table", 3))() == ("table", 3)
+    failing = _beside(lambda: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        failing()
