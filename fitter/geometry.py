@@ -426,7 +426,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
             return r, node, frac, e_c, e_cos, e_nw, e_irr
 
         # The sky's tabulation compiled beside the sun's cells (XLA's compile releases the
-        # interpreter; first fit of env_plastic -0.05 to -0.09 s, paired, 10 rounds).
+        # interpreter): env_plastic's first fit ~0.05-0.1 s sooner (benchmarks/README.md).
         tabulated = _beside(sky) if lighting.sky is not None else None
         sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
         if tabulated is not None:
