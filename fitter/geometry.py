@@ -373,15 +373,14 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     o, d = camera_rays(scene, sel)  # (H, W, K, 3), or (P, 1, K, 3) of the pixels asked for
     weight = film_samples(scene, np.zeros(1, np.int64))[2]  # (K,): the same for every pixel
     h, w, k2, _ = d.shape
+    if env_type == "envmap":
+        # Compiled lookups (op by op it compiled ~50 kernels, 3 s of a first fit), beside
+        # the rest: the compile releases the interpreter.
+        looked_up = _beside(lambda: _miss_radiance(env_type, env, d))  # (H, W, K, 3)
+    else:  # a constant: no device round trip (each eager op compiles a kernel)
+        looked_up = lambda: np.broadcast_to(np.asarray(env.constant, np.float64), d.shape)  # noqa: E731
     t = intersect_sphere(o, d, sph.center, sph.radius)
     hit_all = np.isfinite(t)
-
-    if env_type == "envmap":
-        # Compiled lookups: op by op it compiled ~50 kernels (3 s of a first fit).
-        miss_rad = _miss_radiance(env_type, env, d)  # (H, W, K, 3)
-    else:  # a constant: no device round trip (each eager op compiles a kernel)
-        miss_rad = np.broadcast_to(np.asarray(env.constant, dtype=np.float64), d.shape)
-    background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
 
     active = hit_all.any(axis=2).reshape(-1)
     pixel_index = np.nonzero(active)[0]  # rows of the traced arrays
@@ -393,6 +392,8 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     normal = (pos - np.asarray(sph.center)) / sph.radius
     normal = np.where(hit[..., None], normal, -d_a)
     pos = np.where(hit[..., None], pos, np.asarray(sph.center) + sph.radius * normal)
+    miss_rad = looked_up()
+    background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
     miss_a = miss_rad.reshape(h * w, k2, 3)[pixel_index]
     background = np.einsum("pkc,k->pc", np.where(hit[..., None], 0.0, miss_a), weight)
 
