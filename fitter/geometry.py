@@ -11,7 +11,7 @@ carry per-sample arrays; the others are pure background.
 from __future__ import annotations
 
 import functools
-import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import jax
@@ -333,29 +333,18 @@ def env_samples(scene: Scene, hit, t, o, d, weight, pixel_index):
 
 
 def _beside(fn):
-    """Start ``fn()`` on a thread; returns what joins it and gives its result (or
-    raises its error). (A caller that fails first leaves it to end on its own.)"""
-    box: list = []
-    x64 = jax.config.jax_enable_x64  # (a thread starts with the global setting)
+    """``fn()`` started on a thread (``concurrent.futures``; the thread ends with
+    it), in this thread's x64 setting: returns its future's ``result``."""
+    x64 = jax.config.jax_enable_x64  # (a new thread starts with the global setting)
 
     def run():
-        try:
-            with jax.enable_x64(x64):
-                box.append((True, fn()))
-        except BaseException as e:  # noqa: BLE001 (raised where the result is asked for)
-            box.append((False, e))
+        with jax.enable_x64(x64):
+            return fn()
 
-    thread = threading.Thread(target=run, name="fitter-sky-table", daemon=True)
-    thread.start()
-
-    def result():
-        thread.join()
-        ok, value = box[0]
-        if not ok:
-            raise value
-        return value
-
-    return result
+    pool = ThreadPoolExecutor(1, thread_name_prefix="fitter-geometry")
+    future = pool.submit(run)
+    pool.shutdown(wait=False)
+    return future.result
 
 
 def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
@@ -373,12 +362,9 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     o, d = camera_rays(scene, sel)  # (H, W, K, 3), or (P, 1, K, 3) of the pixels asked for
     weight = film_samples(scene, np.zeros(1, np.int64))[2]  # (K,): the same for every pixel
     h, w, k2, _ = d.shape
-    if env_type == "envmap":
-        # Compiled lookups (op by op it compiled ~50 kernels, 3 s of a first fit), beside
-        # the rest: the compile releases the interpreter.
-        looked_up = _beside(lambda: _miss_radiance(env_type, env, d))  # (H, W, K, 3)
-    else:  # a constant: no device round trip (each eager op compiles a kernel)
-        looked_up = lambda: np.broadcast_to(np.asarray(env.constant, np.float64), d.shape)  # noqa: E731
+    # An envmap's compiled lookups (op by op it compiled ~50 kernels, 3 s of a first fit),
+    # beside the rays' intersection: the compile releases the interpreter.
+    looked_up = _beside(lambda: _miss_radiance(env_type, env, d)) if env_type == "envmap" else None
     t = intersect_sphere(o, d, sph.center, sph.radius)
     hit_all = np.isfinite(t)
 
@@ -392,7 +378,9 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     normal = (pos - np.asarray(sph.center)) / sph.radius
     normal = np.where(hit[..., None], normal, -d_a)
     pos = np.where(hit[..., None], pos, np.asarray(sph.center) + sph.radius * normal)
-    miss_rad = looked_up()
+    # (a constant: no device round trip, where each eager op compiles a kernel)
+    miss_rad = (looked_up() if looked_up else  # (H, W, K, 3)
+                np.broadcast_to(np.asarray(env.constant, dtype=np.float64), d.shape))
     background_image = np.einsum("hwkc,k->hwc", miss_rad, weight).reshape(h * w, 3)
     miss_a = miss_rad.reshape(h * w, k2, 3)[pixel_index]
     background = np.einsum("pkc,k->pc", np.where(hit[..., None], 0.0, miss_a), weight)

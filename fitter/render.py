@@ -129,7 +129,7 @@ def _columns(g, dg, q):
 FEW_LIGHTS = 4
 
 
-def _light_sum(g, weight, color, rgb):
+def _light_sum(g, rgb, weight, color):
     """Sum over lights and samples of shape * weight * light colour: g ([T,] L, P,
     K[, 3]) (``rgb``: the colour axis), weight (L, P, K), colour (L, 3) -> ([T,] P, 3)."""
     if rgb or weight.shape[0] <= FEW_LIGHTS:
@@ -140,26 +140,32 @@ def _light_sum(g, weight, color, rgb):
     return jnp.einsum("...lp,lc->...pc", jnp.sum(g * weight, -1), color)
 
 
-def _brdf_unit(lobe, p, opts, geo: Geometry):
-    """Sum over the scene's lights and samples of shape * weight * light colour: (P, 3)."""
+def _lobe_sum(lobe, p, opts, reduce, cos, *args):
+    """``reduce(g, rgb, *args)`` of the lobe's shape g on ``cos`` (``rgb``: g has a
+    colour axis beyond the cosines' shape), a reduction linear in g, differentiated
+    in the lobe's own parameters by its local Jacobian (``_with_local_jacobian``):
+    the value and every derivative column as one (n + 1)-stack, one reduction."""
+    theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
 
-    def unit(theta, cos, weight, color):
-        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (L, P, K)
-        return _light_sum(g, weight, color, g.ndim > weight.ndim)
+    def unit(theta, cos, *args):
+        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)
+        return reduce(g, g.ndim > jnp.ndim(cos.cos_i), *args)
 
-    def unit_and_jac(theta, cos, weight, color):
+    def unit_and_jac(theta, cos, *args):
         q = unflatten(theta)
         g, dg = lobe.shape_grad(q, opts, cos)
-        # One (n + 1)-stack, one contraction: value and every column at once.
-        out = _light_sum(_columns(g, dg, q), weight, color, g.ndim > weight.ndim)
+        out = reduce(_columns(g, dg, q), g.ndim > jnp.ndim(cos.cos_i), *args)
         return out[0], jnp.moveaxis(out[1:], 0, -1)
 
-    theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
-    args = (geo.cosines, geo.light_weight, geo.light_color)
     if theta is None:
-        return unit(None, *args)
-    return _with_local_jacobian(unit, theta, *args,
+        return unit(None, cos, *args)
+    return _with_local_jacobian(unit, theta, cos, *args,
                                 value_and_jac=unit_and_jac if lobe.shape_grad else None)
+
+
+def _brdf_unit(lobe, p, opts, geo: Geometry):
+    """Sum over the scene's lights and samples of shape * weight * light colour: (P, 3)."""
+    return _lobe_sum(lobe, p, opts, _light_sum, geo.cosines, geo.light_weight, geo.light_color)
 
 
 def _sun_unit(lobe, p, opts, sun):
@@ -169,31 +175,16 @@ def _sun_unit(lobe, p, opts, sun):
     shapes = [np.shape(w) for w in sun.weight]
     cuts = np.cumsum([0] + [n_l * n_q for n_l, n_q in shapes])
 
-    def group_sums(g, weights, colors, rgb):  # g: (..., E[, 3]) -> (..., Q, 3)
+    def group_sums(g, rgb, weights, colors):  # g: (..., E[, 3]) -> (..., Q, 3)
         tail = g.shape[-1:] if rgb else ()
         lead = g.shape[:g.ndim - 1 - len(tail)]
         out = []
         for (n_l, n_q), a, b, w, col in zip(shapes, cuts[:-1], cuts[1:], weights, colors):
             gi = (g[..., a:b, :] if rgb else g[..., a:b]).reshape(lead + (n_l, n_q, 1) + tail)
-            out.append(_light_sum(gi, w[..., None], col, rgb))  # a sample is its own "pixel"
+            out.append(_light_sum(gi, rgb, w[..., None], col))  # a sample is its own "pixel"
         return jnp.concatenate(out, axis=-2)
 
-    def unit(theta, cos, weights, colors):
-        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (E[, 3])
-        return group_sums(g, weights, colors, g.ndim > 1)
-
-    def unit_and_jac(theta, cos, weights, colors):
-        q = unflatten(theta)
-        g, dg = lobe.shape_grad(q, opts, cos)
-        out = group_sums(_columns(g, dg, q), weights, colors, g.ndim > 1)
-        return out[0], jnp.moveaxis(out[1:], 0, -1)
-
-    theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
-    args = (sun.cosines, sun.weight, sun.color)
-    if theta is None:
-        return unit(None, *args)
-    return _with_local_jacobian(unit, theta, *args,
-                                value_and_jac=unit_and_jac if lobe.shape_grad else None)
+    return _lobe_sum(lobe, p, opts, group_sums, sun.cosines, sun.weight, sun.color)
 
 
 def _constant_shape(lobe, opts):
@@ -237,30 +228,16 @@ def _env_unit(lobe, p, opts, geo: Geometry):
     """
     from .envlight import sky_sum
 
-    def cell_mean(g, wnode):  # (..., T, N, M[, 3]) -> (..., T, N[, 3]), over a cell's points
-        rgb = g.ndim > wnode.ndim and g.shape[-1] == 3
-        return jnp.sum(g * wnode[..., None], -2) if rgb else jnp.sum(g * wnode, -1)
+    def stencil_sum(g, rgb, wnode, node, frac, color):  # g: (..., T, N, M[, 3]) -> (..., S, 3)
+        mean = jnp.sum(g * wnode[..., None], -2) if rgb else jnp.sum(g * wnode, -1)  # a cell's
+        return sky_sum(mean, node, frac, color)
 
-    def unit(theta, cos, wnode, node, frac, color):
-        g = lobe.shape(unflatten(theta) if theta is not None else {}, opts, cos)  # (T, N, M[, 3])
-        return sky_sum(cell_mean(g, wnode), node, frac, color)
-
-    def unit_and_jac(theta, cos, wnode, node, frac, color):
-        q = unflatten(theta)
-        g, dg = lobe.shape_grad(q, opts, cos)
-        out = sky_sum(cell_mean(_columns(g, dg, q), wnode), node, frac, color)  # (n + 1, S, 3)
-        return out[0], jnp.moveaxis(out[1:], 0, -1)
-
-    theta, unflatten = _param_vector(lobe, p, skip=lobe.scale)
-    args = (geo.env_cosines, geo.env_node_weight, geo.env_node, geo.env_frac, geo.env_color)
-    const = _constant_shape(lobe, opts) if theta is None else None
+    # (parameter-free, its shape may be a constant)
+    const = _constant_shape(lobe, opts) if all(n == lobe.scale for n in p) else None
     if const is not None:  # e.g. Lambert: g x the sky's irradiance, tabulated per scene
         return const * geo.env_irradiance
-    if theta is None:
-        per_sample = unit(None, *args)
-    else:
-        per_sample = _with_local_jacobian(
-            unit, theta, *args, value_and_jac=unit_and_jac if lobe.shape_grad else None)
+    per_sample = _lobe_sum(lobe, p, opts, stencil_sum, geo.env_cosines, geo.env_node_weight,
+                           geo.env_node, geo.env_frac, geo.env_color)
     out = jnp.zeros((geo.background.shape[0], 3), per_sample.dtype)
     # env samples -> their pixels; a sample of a pixel not fitted points past the end
     return out.at[geo.env_index].add(per_sample, mode="drop")

@@ -458,14 +458,17 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
         return order, window, pos, np.zeros((0, 3 * BLOCK, n))
     nb = window.shape[0]
     real = order >= 0
+
+    def cast(a):  # the tabulation's inputs: floats in its dtype, integers as they are
+        return np.asarray(a, dtype if np.asarray(a).dtype.kind == "f" else None)
+
+    consts = [cast(a) for a in (q_tab, cen_tab, quads, lh, lw, loff, lo, fl)]
     if np.count_nonzero(real) * n <= HOST_TABLE_CELLS:
         pick = order[real]
-        consts = [np.asarray(a, dtype) if np.asarray(a).dtype.kind == "f" else a
-                  for a in (q_tab, cen_tab, quads, lh, lw, loff, lo, fl)]
         c = np.zeros((order.size, 3, n))
         with np.errstate(all="ignore"):  # (NumPy warns where JAX computes and discards)
-            c[real] = _table_fn(np)(*(np.asarray(x, dtype) for x in (
-                normal[pick], view[pick], weight[pick])), *consts)
+            c[real] = _table_fn(np)(*(cast(x) for x in (normal[pick], view[pick],
+                                                        weight[pick])), *consts)
         return order, window, pos, c.reshape(nb, 3 * BLOCK, n)
     n_chunks = -(-order.size // max(chunk, BLOCK))
     per = -(-nb // n_chunks)  # blocks per chunk
@@ -479,11 +482,9 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     nrm = np.where(pad[:, None], [0.0, 0.0, 1.0], normal[pick])
     wo = np.where(pad[:, None], [0.0, 0.0, 1.0], view[pick])
     wt = np.where(pad, 0.0, weight[pick])
-    # to_device: no copy kernel compiled per shape, as jnp.asarray of a host array does
-    flt = lambda a: to_device(a, dtype if np.asarray(a).dtype.kind == "f" else None)  # noqa: E731
-    consts = [flt(a) for a in (q_tab, cen_tab, quads, lh, lw, loff, lo, fl)]
     # One jitted map over the chunks writing straight into the (nb, B x 3, N) float64
     # table: no host copy of it (a fresh 0.5 GB costs seconds of page faults here).
-    c = _table_all(*(flt(x.reshape((-1, step) + x.shape[1:])) for x in (nrm, wo, wt)),
-                   *consts, rows=3 * BLOCK)
+    # (to_device: no copy kernel compiled per shape, as jnp.asarray of a host array does)
+    c = _table_all(*(to_device(cast(x.reshape((-1, step) + x.shape[1:]))) for x in (nrm, wo, wt)),
+                   *(to_device(a) for a in consts), rows=3 * BLOCK)
     return order, window, pos, c

@@ -474,11 +474,16 @@ def test_the_sun_groups_one_lobe_evaluation_is_each_groups_light_sum(sun_probe, 
 
 
 def test_work_started_beside_gives_its_result_or_raises_its_error():
-    """``geometry._beside`` (the sky's tabulation beside the sun's cells): the
-    result comes back where it is asked for, and so does an error."""
+    """``geometry._beside`` (the sky's tabulation and the background's lookup beside
+    the rest of the set-up): the result comes back where it is asked for, and so
+    does an error; the work runs in its caller's x64 setting (a new thread would
+    have the global one)."""
     from fitter.geometry import _beside
 
     assert _beside(lambda: ("table", 3))() == ("table", 3)
     failing = _beside(lambda: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         failing()
+    with jax.enable_x64(False):
+        assert _beside(lambda: jnp.zeros(2).dtype)() == jnp.float32
+    assert _beside(lambda: jnp.zeros(2).dtype)() == jnp.float64
