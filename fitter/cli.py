@@ -198,15 +198,19 @@ class _Log:
 
         check_interrupt()
         t0 = time.perf_counter()
-        with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
-                      console=self.console, transient=True) as bar:
-            task = bar.add_task(text + " ...", total=None)
+        if not self.console.is_terminal:  # (a log file: no spinner, whose end is a blank line)
+            yield lambda line: check_interrupt()
+        else:
+            with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
+                          console=self.console, transient=True) as bar:
+                task = bar.add_task(text + " ...", total=None)
 
-            def note(line: str) -> None:
-                check_interrupt()  # a stage boundary: a remembered signal stops here
-                bar.update(task, description=f"{text} ... {_printable(line)}", refresh=True)
+                def note(line: str) -> None:
+                    check_interrupt()  # a stage boundary: a remembered signal stops here
+                    bar.update(task, description=f"{text} ... {_printable(line)}",
+                               refresh=True)
 
-            yield note
+                yield note
         check_interrupt()
         self.console.print(f"[dim]{text}: {time.perf_counter() - t0:.2f} s[/dim]")
 
@@ -374,9 +378,10 @@ def cmd_synth(args) -> int:
         raise UsageError(f"{out}: exists and is not a folder; choose another --out")
     from . import pipeline
     from .mitsuba import synth
+    from .outdir import make_folders, remove_made
 
     params = pipeline.truth_params(job)
-    os.makedirs(out, exist_ok=True)
+    made = make_folders(out)
     tmp = tempfile.mkdtemp(prefix=".synth.tmp-", dir=out)
     try:
         with log.stage(f"rendering {job.name} with Mitsuba ({spp} spp)"):
@@ -385,8 +390,11 @@ def cmd_synth(args) -> int:
                              paths_relative_to=out)
         for name in sorted(os.listdir(tmp)):
             os.replace(os.path.join(tmp, name), os.path.join(out, name))
-    finally:
+    except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
+        remove_made(made)  # (the folders it made for this run: none of the user's)
+        raise
+    shutil.rmtree(tmp, ignore_errors=True)
     log.print(f"wrote {out}")
     if job.fit.target and os.path.dirname(job.fit.target) == out and \
             not os.path.exists(job.fit.target):

@@ -34,11 +34,13 @@ class EnvData(NamedTuple):
 def load_environment(env: Environment, base_dir: str | None = None) -> EnvData:
     """Read the environment's arrays (the envmap EXR through ``fitter.imageio``)."""
     if env.type == "envmap":
-        from .imageio import read_image  # OpenImageIO only when an envmap is used
+        from .imageio import check_radiance, read_image  # OpenImageIO only for an envmap
 
         path = resolve_path(env.file, base_dir)
-        img = np.asarray(read_image(path), dtype=np.float64) * env.scale
-        return EnvData(to_device(img), to_device(np.zeros(3)))
+        img = np.asarray(read_image(path), dtype=np.float64)
+        # (a NaN texel reached every render through the sky's pyramid: a traceback in the fit)
+        check_radiance(img, f"{path} (scene.environment.file)", "an envmap")
+        return EnvData(to_device(img * env.scale), to_device(np.zeros(3)))
     rad = np.zeros(3) if env.type == "black" else np.asarray(env.radiance, dtype=np.float64) * env.scale
     return EnvData(to_device(np.zeros((1, 1, 3))), to_device(rad))
 

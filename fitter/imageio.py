@@ -84,6 +84,18 @@ def read_image(path: str, with_saturation: bool = False):
     return (rgb, saturated) if with_saturation else rgb
 
 
+def check_radiance(img: np.ndarray, where: str, what: str) -> None:
+    """Raise ``ImageError`` unless every value of ``img`` (..., 3) is linear
+    radiance: finite and >= 0. ``where`` begins the message (the file, and its
+    key); ``what`` names the image (``"a target"``)."""
+    bad = ~np.isfinite(img)
+    if bad.any():
+        raise ImageError(f"{where}: {int(bad.any(axis=-1).sum())} pixel(s) are NaN or Inf")
+    if (img < 0).any():
+        raise ImageError(f"{where}: {int((img < 0).any(axis=-1).sum())} pixel(s) have negative "
+                         f"values (minimum {img.min():.3g}); {what} must be linear radiance >= 0")
+
+
 def atomic_write(path: str, write) -> None:
     """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it to ``path``.
 

@@ -88,9 +88,8 @@ def staged_dir(out: str):
     """
     out = check_out(out)
     parent, name = os.path.dirname(out), os.path.basename(out)
-    made_parent = not os.path.isdir(parent)
     try:
-        os.makedirs(parent, exist_ok=True)
+        made = make_folders(parent)
     except OSError as exc:
         raise OutputError(f"{out}: cannot create {parent} ({exc.strerror})") from None
     for note in clean_stale(parent, name):
@@ -103,11 +102,28 @@ def staged_dir(out: str):
         _swap_in(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
-        if made_parent:
-            with contextlib.suppress(OSError):
-                os.removedirs(parent)
+        remove_made(made)
         raise
     shutil.rmtree(tmp, ignore_errors=True)  # now the old result, if there was one
+
+
+def make_folders(path: str) -> list[str]:
+    """``os.makedirs(path, exist_ok=True)``, returning the folders it created,
+    deepest first, for ``remove_made``."""
+    made, p = [], os.path.abspath(path)
+    while not os.path.isdir(p) and p != os.path.dirname(p):
+        made.append(p)
+        p = os.path.dirname(p)
+    os.makedirs(path, exist_ok=True)
+    return made
+
+
+def remove_made(made: list[str]) -> None:
+    """Remove the folders ``make_folders`` created where they are still empty:
+    those only (``os.removedirs`` would go on up through a user's empty folders)."""
+    for folder in made:
+        with contextlib.suppress(OSError):
+            os.rmdir(folder)
 
 
 def clean_stale(parent: str, name: str) -> list[str]:

@@ -291,7 +291,7 @@ def read_target(path: str, scene) -> tuple[np.ndarray, np.ndarray]:
     Raises ``ImageError`` naming the file for a missing/unreadable file, a
     size other than the scene's, NaN/Inf or negative pixel values.
     """
-    from .imageio import read_image
+    from .imageio import check_radiance, read_image
 
     if os.path.isdir(path):
         raise ImageError(f"{path}: is a folder, expected a target image file")
@@ -300,12 +300,6 @@ def read_target(path: str, scene) -> tuple[np.ndarray, np.ndarray]:
     if (w, h) != (scene.width, scene.height):
         raise ImageError(f"{path}: image is {w}x{h} pixels but the scene is "
                          f"{scene.width}x{scene.height} (scene.width x scene.height)")
-    bad = ~np.isfinite(img)
-    if bad.any():
-        raise ImageError(f"{path}: {int(bad.any(axis=-1).sum())} pixel(s) are NaN or Inf")
-    if (img < 0).any():
-        raise ImageError(f"{path}: {int((img < 0).any(axis=-1).sum())} pixel(s) have negative "
-                         f"values (minimum {img.min():.3g}); a target must be linear "
-                         "radiance >= 0")
+    check_radiance(img, path, "a target")
     return img, saturated
 

@@ -203,6 +203,33 @@ def test_bad_target_image_exits_2_naming_the_file_and_writes_nothing(
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("command", ["fit", "synth", "render"])
+@pytest.mark.parametrize("kind,words", [
+    ("nan", ["NaN or Inf"]),
+    ("inf", ["NaN or Inf"]),
+    ("negative", ["negative", "-0.5"]),
+])
+def test_bad_envmap_exits_2_naming_the_file_and_writes_nothing(small, tmp_path, capsys, kind,
+                                                               words, command):
+    # An envmap with a NaN texel once reached the fit's linear algebra (a traceback), and
+    # Mitsuba rendered it into a synthetic target.
+    probe = str(tmp_path / "probe.exr")
+    _bad_image(kind, probe, shape=(16, 32))
+    data = json.loads(json.dumps(SMALL))
+    data["scene"]["environment"] = {"type": "envmap", "file": probe}
+    data["fit"]["target"] = os.path.join(os.path.dirname(small), "target.exr")
+    config = tmp_path / "env.toml"
+    config.write_text(dumps_toml(data))
+    out = tmp_path / "image.exr" if command == "render" else tmp_path / "out" / "res"
+    code, stdout, err = _run(capsys, command, config, "--out", out)
+    assert code == 2
+    assert stdout == ""
+    assert err.count("\n") == 1 and probe in err and "Traceback" not in err
+    for word in words + ["scene.environment.file"]:
+        assert word in err, (word, err)
+    assert not (tmp_path / "out").exists() and not (tmp_path / "image.exr").exists()
+
+
 def _config_with(folder, **fit):
     data = json.loads(json.dumps(SMALL))
     data["fit"].update(fit)

@@ -162,3 +162,14 @@ def test_a_link_to_a_fitter_folder_is_written_through(tmp_path):
     with staged_dir(str(link)) as tmp:
         _write_result(tmp, "b")
     assert link.is_symlink() and (real / "result.json").read_text() == "b"
+
+
+def test_a_failure_removes_only_the_folders_it_made(tmp_path):
+    # os.removedirs went on up through the user's own empty folders.
+    users = tmp_path / "runs"
+    users.mkdir()
+    out = users / "new" / "deeper" / "res"
+    with pytest.raises(RuntimeError):
+        with staged_dir(str(out)):
+            raise RuntimeError("the job failed")
+    assert users.is_dir() and list(users.iterdir()) == []

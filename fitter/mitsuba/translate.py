@@ -152,6 +152,9 @@ def _emitters(scene: Scene, base_dir, exposure: float = 1.0) -> dict:
         path = resolve_path(env.file, base_dir)
         if not os.path.exists(path):
             raise MitsubaError(f"environment.file = {env.file!r}: file not found ({path})")
+        from ..imageio import check_radiance, read_image  # (Mitsuba would render the NaNs)
+
+        check_radiance(read_image(path), f"{path} (scene.environment.file)", "an envmap")
         out["environment"] = {"type": "envmap", "filename": os.path.abspath(path),
                               "scale": float(env.scale) * x}
     elif env.type != "black":
