@@ -86,6 +86,74 @@ def test_sun_split_conserves_the_map_energy():
     assert p0.levels[0].shape == p1.levels[0].shape
 
 
+def _footprint_mean(img, h, w, sub=8):
+    """The definition of a pyramid texel, one lookup per point: the sin(theta)-weighted
+    mean of the bilinear map at sub x sub points of its footprint (rows at the poles)."""
+    off = (np.arange(sub) + 0.5) / sub - 0.5
+    u = ((np.arange(w)[:, None] + 0.5 + off) / w).reshape(-1)
+    v = ((np.arange(h)[:, None] + off) / (h - 1)).reshape(-1)
+    inside = (v >= 0) & (v <= 1)
+    uu, vv = np.meshgrid(u, np.clip(v, 0.0, 1.0))
+    wt = (np.sin(np.pi * vv) + 1e-9) * inside[:, None]
+    num = (envlight.bilinear(img, uu, vv) * wt[..., None]).reshape(h, sub, w, sub, 3)
+    return num.sum((1, 3)) / wt.reshape(h, sub, w, sub).sum((1, 3))[..., None]
+
+
+#: Sums in another order than the definition's: float64 rounding.
+SUM_ORDER_RTOL = 1e-12
+
+
+def test_pyramid_levels_are_the_mean_over_each_texels_footprint():
+    img = np.random.default_rng(1).random((17, 32, 3)) ** 4 * 50.0
+    pyramid = envlight.Pyramid(img)
+    assert len(pyramid.levels) > 2
+    for level in pyramid.levels[1:]:
+        np.testing.assert_allclose(level, _footprint_mean(img, *level.shape[:2]),
+                                   rtol=SUM_ORDER_RTOL)
+
+
+def _radiant_power(img):
+    """int L dw of the bilinear map, a midpoint rule of s x s points per texel."""
+    h, w = img.shape[:2]
+    s = max(4, 1024 // w)
+    v, u = np.mgrid[0:h * s, 0:w * s] + 0.5
+    u, v = u / (w * s), v / (h * s)
+    dw = np.sin(np.pi * v) * (np.pi / (h * s)) * (2 * np.pi / (w * s))
+    return (envlight.bilinear(img, u, v) * dw[..., None]).sum((0, 1))
+
+
+@pytest.mark.parametrize("light_width", [128, 16])
+def test_a_wide_map_lights_from_a_level_that_keeps_its_power_and_its_sun(monkeypatch,
+                                                                         light_width):
+    monkeypatch.setattr(envlight, "LIGHT_WIDTH", light_width)  # (a small map, the same rule)
+    # 4 or 32 texels of the map per light-map texel (at 32, 8 points a texel skipped some)
+    h, w = 257, 512
+    img = np.full((h, w, 3), 0.5)
+    img[80:82, 201:203] = [900.0, 850.0, 700.0]  # a sun of 2 x 2 texels
+    small = envlight.light_map(img)
+    assert light_width // 2 <= small.shape[1] <= light_width
+    assert envlight.light_map(small) is small  # narrow enough: the map itself
+    np.testing.assert_allclose(_radiant_power(small), _radiant_power(img), rtol=2e-3)
+    lights = envlight.env_lights("envmap", img, np.zeros(3))
+    assert lights.sky.levels[0].shape == small.shape
+    if light_width == 128:  # the sun is still a sun there: its power the same
+        per, most = envlight.sun_cells(w)
+        sun_full = envlight.split_sun(img, per, envlight.SUN_SUB, most)[1].sum(0)
+        np.testing.assert_allclose(lights.sun_irradiance.sum(0), sun_full, rtol=2e-2)
+
+
+@pytest.mark.parametrize("width", [32, 64, 128, 256, 512, 1000, 4096])
+def test_sun_cells_keep_their_angle_and_count_on_wide_maps(width):
+    per, most = envlight.sun_cells(width)
+    finer_per, finer_most = envlight.sun_cells(width, 2 * envlight.SUN_CELL)
+    assert per >= 1 and finer_per == 2 * per and finer_most == most  # the same sun, finer
+    if width <= envlight.SUN_CELL_WIDTH:  # the measured defaults
+        assert (per, most) == (envlight.SUN_CELL, envlight.SUN_MAX_TEXELS)
+    else:  # no finer in angle than those, and no more cells
+        assert per / width <= envlight.SUN_CELL / envlight.SUN_CELL_WIDTH
+        assert most * per ** 2 == envlight.SUN_MAX_TEXELS * envlight.SUN_CELL ** 2
+
+
 def test_unlit_opaque_lobes_are_named():
     mat = Material.from_params({"lambert.rho_d": 0.5})
     assert "scene.lights" in envlight.unlit(SMALL, mat)

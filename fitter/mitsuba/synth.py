@@ -51,15 +51,15 @@ def make_envmap(path: str, width: int = 64, height: int = 32) -> None:
 PROBE_SUN = ((0.45, 0.55, 0.70), 3.0, 300.0)
 
 
-def make_probe(path: str, width: int = 128, height: int = 64) -> None:
+def make_probe(path: str, width: int = 128, height: int = 64, sub: int = 8) -> None:
     """Write a small HDR light probe (Mitsuba's lat-long mapping, linear RGB).
 
     A sky gradient (zenith blue, horizon pale) over a darker ground, a dim
     warm window (a rectangle left of the camera) and a small bright sun
     (``PROBE_SUN``: ~3 deg at ~300x the sky radiance near it), each texel the
-    average of 8 x 8 sub-samples so that the sun disk is area-weighted.
+    average of ``sub`` x ``sub`` sub-samples so that the sun disk is area-weighted.
     """
-    s = 8
+    s = sub
     v, u = np.mgrid[0:height * s, 0:width * s].astype(np.float64)
     u = ((u + 0.5) / s - 0.5 + 0.5) / width  # sub-samples about texel centres (i + 0.5) / W
     v = np.clip(((v + 0.5) / s - 0.5) / (height - 1), 0.0, 1.0)  # rows at v = j / (H - 1)
