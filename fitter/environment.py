@@ -14,12 +14,14 @@ derivatives where acos does not.
 
 from __future__ import annotations
 
+import os
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._keep import recent
 from ._math import safe_sqrt, to_device
 from .scene import Environment, resolve_path
 
@@ -32,17 +34,30 @@ class EnvData(NamedTuple):
 
 
 def load_environment(env: Environment, base_dir: str | None = None) -> EnvData:
-    """Read the environment's arrays (the envmap EXR through ``fitter.imageio``)."""
+    """Read the environment's arrays (the envmap EXR through ``fitter.imageio``,
+    once per version of the file: ``_read_envmap``)."""
     if env.type == "envmap":
-        from .imageio import check_radiance, read_image  # OpenImageIO only for an envmap
-
         path = resolve_path(env.file, base_dir)
-        img = np.asarray(read_image(path), dtype=np.float64)
-        # (a NaN texel reached every render through the sky's pyramid: a traceback in the fit)
-        check_radiance(img, f"{path} (scene.environment.file)", "an envmap")
-        return EnvData(to_device(img * env.scale), to_device(np.zeros(3)))
+        try:
+            st = os.stat(path)
+            stamp = (st.st_mtime_ns, st.st_size)
+        except OSError:
+            stamp = None  # (read_image names the problem)
+        return _read_envmap(path, float(env.scale), stamp)
     rad = np.zeros(3) if env.type == "black" else np.asarray(env.radiance, dtype=np.float64) * env.scale
     return EnvData(to_device(np.zeros((1, 1, 3))), to_device(rad))
+
+
+@recent(max_items=2, max_bytes=2**30)
+def _read_envmap(path: str, scale: float, stamp) -> EnvData:
+    """An envmap's arrays; ``stamp`` (the file's mtime and size) keys the cache: a fit
+    asks for them ~6 times, and a 8192-wide map took ~1.7 s a read."""
+    from .imageio import check_radiance, read_image  # OpenImageIO only for an envmap
+
+    img = np.asarray(read_image(path), dtype=np.float64)
+    # (a NaN texel reached every render through the sky's pyramid: a traceback in the fit)
+    check_radiance(img, f"{path} (scene.environment.file)", "an envmap")
+    return EnvData(to_device(img * scale), to_device(np.zeros(3)))
 
 
 def _uv_and_polar(v):

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
+import weakref
 from typing import NamedTuple
 
 import numpy as np
@@ -272,32 +273,39 @@ _LAST: dict = {}
 _LAST_LOCK = threading.Lock()
 
 
-def _last(kind, image: np.ndarray, make):
-    """``make()`` of ``image``, or the value made last for this kind and an equal image
-    (its arrays read-only)."""
-    key = (image.shape, image.dtype.str, hashlib.blake2b(
-        memoryview(np.ascontiguousarray(image)).cast("B"), digest_size=16).digest())
+def _last(kind, image, make):
+    """``make()`` of ``image`` (a NumPy or device array), or the value made last for
+    this kind and the same image object, or an equal one (its arrays read-only)."""
     with _LAST_LOCK:
-        if kind in _LAST and _LAST[kind][0] == key:
-            return _LAST[kind][1]
+        last = _LAST.get(kind)
+        if last and last[2]() is image:  # (an 8192-wide map took 1 s to hash)
+            return last[1]
+    data = np.ascontiguousarray(image)  # (a device array's host view)
+    key = (data.shape, data.dtype.str,
+           hashlib.blake2b(memoryview(data).cast("B"), digest_size=16).digest())
+    with _LAST_LOCK:
+        if last and last[0] == key:
+            _LAST[kind] = (key, last[1], weakref.ref(image))
+            return last[1]
     value = make()  # (outside the lock: two threads may both make it, the same)
     for a in value.levels if isinstance(value, Pyramid) else (value,):
         a.flags.writeable = False
     with _LAST_LOCK:
-        _LAST[kind] = (key, value)
+        _LAST[kind] = (key, value, weakref.ref(image))
     return value
 
 
-def env_lights(env_type: str, image: np.ndarray, constant: np.ndarray,
+def env_lights(env_type: str, image, constant: np.ndarray,
                detail: Detail | None = None, sun: tuple = (SUN_CELL, SUN_SUB)) -> EnvLights | None:
-    """The split environment, or None for a black one; ``detail``: the sky term's
-    discretisation, which ``geometry.build_geometry`` uses (default ``Detail()``,
-    made per call: ``benchmarks/envlight.py`` varies its defaults);
-    ``sun``: (cell, sub) of ``split_sun`` (the sun's discretisation)."""
+    """The split environment of ``image`` (H, W, 3), a NumPy or device array (the
+    same object again reuses its light map: ``_last``), or None for a black one;
+    ``detail``: the sky term's discretisation, which ``geometry.build_geometry``
+    uses (default ``Detail()``, made per call: ``benchmarks/envlight.py`` varies its
+    defaults); ``sun``: (cell, sub) of ``split_sun`` (the sun's discretisation)."""
     detail = Detail() if detail is None else detail
     if env_type == "envmap":
         image = _last(("light map", LIGHT_WIDTH), image,
-                      lambda: np.array(light_map(image), np.float64))
+                      lambda: np.array(light_map(np.asarray(image, np.float64)), np.float64))
         cell, most = sun_cells(image.shape[1], sun[0])
         sun_dir, sun_irr, sky = split_sun(image, cell, sun[1], most)
         # (a copy: level 0 is the sky itself, which may be the light map)

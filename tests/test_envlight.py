@@ -555,3 +555,25 @@ def test_work_started_beside_gives_its_result_or_raises_its_error():
     with jax.enable_x64(False):
         assert _beside(lambda: jnp.zeros(2).dtype)() == jnp.float32
     assert _beside(lambda: jnp.zeros(2).dtype)() == jnp.float64
+
+
+def test_an_envmap_is_read_once_per_version_of_its_file(tmp_path):
+    import os
+
+    from fitter.environment import load_environment
+    from fitter.imageio import write_image
+
+    path = tmp_path / "sky.exr"
+    write_image(str(path), np.full((8, 16, 3), 0.5))
+    env = Environment(type="envmap", file=str(path))
+    first = load_environment(env)
+    assert load_environment(env) is first  # (an 8192-wide map took ~1.7 s a read)
+    lights = envlight.env_lights("envmap", first.image, first.constant)
+    again = envlight.env_lights("envmap", first.image, first.constant)
+    assert again.sky is lights.sky  # one pyramid for the fit's four geometries
+    write_image(str(path), np.full((8, 16, 3), 0.25))
+    stamp = os.stat(path).st_mtime_ns + 10**9  # (another version, whatever the clock)
+    os.utime(path, ns=(stamp, stamp))
+    changed = load_environment(env)
+    np.testing.assert_array_equal(np.asarray(changed.image), 0.25)
+    assert envlight.env_lights("envmap", changed.image, changed.constant).sky is not lights.sky

@@ -152,9 +152,10 @@ def _emitters(scene: Scene, base_dir, exposure: float = 1.0) -> dict:
         path = resolve_path(env.file, base_dir)
         if not os.path.exists(path):
             raise MitsubaError(f"environment.file = {env.file!r}: file not found ({path})")
-        from ..imageio import check_radiance, read_image  # (Mitsuba would render the NaNs)
+        from ..environment import load_environment  # (checks the texels: Mitsuba would
+        # render NaNs; read once per version of the file, as the fit's own read)
 
-        check_radiance(read_image(path), f"{path} (scene.environment.file)", "an envmap")
+        load_environment(env, base_dir)
         out["environment"] = {"type": "envmap", "filename": os.path.abspath(path),
                               "scale": float(env.scale) * x}
     elif env.type != "black":
