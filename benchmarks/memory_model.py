@@ -141,8 +141,8 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as folder:
         for row in args.rows:
             case, task, res, k = row.split(":")
-            job, _ = _job(case, int(res), int(k))
-            est = limits.scene_bytes(task, job.scene, job.material)
+            job, base = _job(case, int(res), int(k))
+            est = limits.scene_bytes(task, job.scene, job.material, base)
             got = run(row, folder)
             print(f"| {case} | {task} | {res}² | {k}x{k} | {got['seconds']:.1f} | "
                   f"{got['peak'] / 1e9:.2f} | {est / 1e9:.2f} | {est / got['peak']:.2f} |",

@@ -442,7 +442,7 @@ def cmd_render(args) -> int:
     from .imageio import write_image
     from .limits import check_scene
 
-    check_scene("render", job.scene, job.material, where=job.path)
+    check_scene("render", job.scene, job.material, where=job.path, base_dir=job.base_dir)
     enable_compilation_cache()
     with log.stage("rendering"):
         img = pipeline.render_params(job, params)

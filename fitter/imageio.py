@@ -68,6 +68,21 @@ def linear_to_srgb(values: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
 
 
+def image_size(path: str) -> tuple[int, int]:
+    """(width, height) of an image file from its header (``ImageError`` where it
+    cannot be opened)."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        raise ImageError(f"{path}: cannot read image ({oiio.geterror().strip() or 'unknown'})")
+    try:
+        spec = inp.spec()
+        return spec.width, spec.height
+    finally:
+        inp.close()
+
+
 def read_image(path: str, with_saturation: bool = False):
     """Read ``path`` as linear RGB float64 (H, W, 3).
 

@@ -37,6 +37,11 @@ MEMORY_MODEL = {
     ("render", False): (0.3e9, 0.0, 340.0),
     ("render", True): (0.55e9, 8e3, 1600.0),
 }
+#: Peak memory an envmap adds, per texel of its file (its float64 read and device copy,
+#: beside the model's film terms, which the shipped 128-wide probe calibrated): measured
+#: 25-45 bytes a texel with the probe's scene 2048, 4096 and 8192 wide (fits at 128^2 x
+#: 4^2 of 1.8, 2.1 and 2.5 GB peak RSS), 48 estimated.
+ENVMAP_BYTES_PER_TEXEL = 48.0
 #: Share of the machine's available memory a fit may plan to use.
 MEMORY_SHARE = 0.8
 
@@ -46,12 +51,30 @@ class ResourceError(FitterError):
 
 
 def job_bytes(task: str, width: int, height: int, supersampling: int,
-              env_lit: bool = False) -> float:
+              env_lit: bool = False, env_texels: int = 0) -> float:
     """Estimated peak memory (bytes) of a ``task`` ("fit" or "render") at this
-    film size (``env_lit``: an environment lights opaque lobes); ``MEMORY_MODEL``."""
+    film size (``env_lit``: an environment lights opaque lobes; ``env_texels``: its
+    envmap's size); ``MEMORY_MODEL``, ``ENVMAP_BYTES_PER_TEXEL``."""
     fixed, per_pixel, per_sample = MEMORY_MODEL[(task, bool(env_lit))]
     pixels = float(width) * float(height)
-    return fixed + per_pixel * pixels + per_sample * pixels * supersampling ** 2
+    return (fixed + per_pixel * pixels + per_sample * pixels * supersampling ** 2
+            + ENVMAP_BYTES_PER_TEXEL * env_texels)
+
+
+def envmap_texels(scene, base_dir: str | None = None) -> int:
+    """Texels of the scene's envmap, read from its file's header (0 without one, or
+    where the header cannot be read: reading the map says why)."""
+    env = scene.environment
+    if env.type != "envmap" or not env.file:
+        return 0
+    from .imageio import image_size
+    from .scene import resolve_path
+
+    try:
+        width, height = image_size(resolve_path(env.file, base_dir))
+    except Exception:  # noqa: BLE001 (the read names the problem)
+        return 0
+    return width * height
 
 
 def available_bytes() -> float | None:
@@ -69,31 +92,34 @@ def available_bytes() -> float | None:
         return None
 
 
-def scene_bytes(task: str, scene, material) -> float:
+def scene_bytes(task: str, scene, material, base_dir: str | None = None) -> float:
     """``job_bytes`` of a ``task`` on ``scene`` with ``material`` (env-lit where its
-    environment lights an opaque lobe, ``envlight.lit_by_environment``)."""
+    environment lights an opaque lobe, ``envlight.lit_by_environment``; its envmap's
+    texels, ``envmap_texels``)."""
     from .envlight import lit_by_environment
 
     return job_bytes(task, scene.width, scene.height, scene.supersampling,
-                     lit_by_environment(scene, material))
+                     lit_by_environment(scene, material), envmap_texels(scene, base_dir))
 
 
-def check_scene(task: str, scene, material, where: str = "", n_starts: int = 1) -> None:
+def check_scene(task: str, scene, material, where: str = "", n_starts: int = 1,
+                base_dir: str | None = None) -> None:
     """``check_fit`` (``task`` "fit") or the same check of a render, of ``scene``
-    with ``material``: what ``fitter.fit``, ``fitter.render`` and the CLI check
-    before any work."""
+    with ``material`` (an envmap's path relative to ``base_dir``): what
+    ``fitter.fit``, ``fitter.render`` and the CLI check before any work."""
     from .envlight import lit_by_environment
 
     args = (scene.width, scene.height, scene.supersampling)
     env_lit = lit_by_environment(scene, material)
+    texels = envmap_texels(scene, base_dir)
     if task == "fit":
-        check_fit(*args, n_starts, where, env_lit)
+        check_fit(*args, n_starts, where, env_lit, texels)
     else:
-        _check_film(task, *args, where, env_lit)
+        _check_film(task, *args, where, env_lit, texels)
 
 
 def check_fit(width: int, height: int, supersampling: int, n_starts: int,
-              where: str = "", env_lit: bool = False) -> None:
+              where: str = "", env_lit: bool = False, env_texels: int = 0) -> None:
     """Raise ``ResourceError`` if a fit of this size cannot run here.
 
     ``where`` prefixes the message (a config path, or "" for the Python API).
@@ -102,11 +128,11 @@ def check_fit(width: int, height: int, supersampling: int, n_starts: int,
         at = f"{where}: " if where else ""
         raise ResourceError(f"{at}fit.n_starts = {n_starts} is over the limit of {MAX_STARTS} "
                             "starts; use fewer starts")
-    _check_film("fit", width, height, supersampling, where, env_lit)
+    _check_film("fit", width, height, supersampling, where, env_lit, env_texels)
 
 
 def _check_film(task: str, width: int, height: int, supersampling: int, where: str,
-                env_lit: bool) -> None:
+                env_lit: bool, env_texels: int = 0) -> None:
     """Raise ``ResourceError`` over ``MAX_SUPERSAMPLING``, or where ``job_bytes``
     is over ``MEMORY_SHARE`` of the memory available now."""
     at = f"{where}: " if where else ""
@@ -114,12 +140,14 @@ def _check_film(task: str, width: int, height: int, supersampling: int, where: s
         raise ResourceError(f"{at}scene.supersampling = {supersampling} is over the limit of "
                             f"{MAX_SUPERSAMPLING} (that is {MAX_SUPERSAMPLING ** 2} samples a "
                             "pixel); 4 is enough for smooth lobes")
-    need = job_bytes(task, width, height, supersampling, env_lit)
+    need = job_bytes(task, width, height, supersampling, env_lit, env_texels)
     have = available_bytes()
     if have is not None and need > MEMORY_SHARE * have:
         raise ResourceError(
             f"{at}a {width}x{height} {task} at scene.supersampling = {supersampling}"
-            f"{' lit by its environment' if env_lit else ''} needs about "
+            f"{' lit by its environment' if env_lit else ''}"
+            f"{f' with an envmap of {env_texels / 1e6:.1f} M texels' if env_texels else ''}"
+            " needs about "
             f"{need / 1e9:.1f} GB of memory and this machine has {have / 1e9:.1f} GB "
             "available; lower scene.supersampling or the image size (or crop the image to "
             "the sphere)")

@@ -167,7 +167,7 @@ def preflight(job: Job) -> None:
     reason = unlit(job.scene, job.material)
     if reason:
         raise ConfigError(f"{job.path}: {reason}")
-    limits.check_scene("fit", job.scene, job.material, where=job.path,
+    limits.check_scene("fit", job.scene, job.material, where=job.path, base_dir=job.base_dir,
                        n_starts=job.fit.n_starts)
     if job.fit.validate:
         limits.check_spp(job.fit.validate_spp, "fit.validate_spp", where=job.path)

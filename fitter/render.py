@@ -421,7 +421,7 @@ def render(params: Mapping[str, Any], scene: Scene, material: Material | None = 
         material = Material.make(material)
     if EXPOSURE_KEY in params:
         material = material.with_exposure()
-    check_scene("render", scene, material)
+    check_scene("render", scene, material, base_dir=base_dir)
     numeric = {k: v for k, v in params.items() if k not in material.option_keys()}
     base_dir = os.path.abspath(base_dir) if base_dir else None
     return cached_renderer(scene, material, jnp.dtype(dtype), base_dir).image(numeric)

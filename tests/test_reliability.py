@@ -259,3 +259,27 @@ def test_a_signal_during_an_import_is_raised_after_it(tmp_path, monkeypatch):
         with interrupt.signals_as_interrupt():
             imported.append(importlib.import_module("slow_native_stand_in"))
     assert imported and imported[0].FINISHED  # the module's body ran to its end
+
+
+def test_an_envmap_counts_in_the_memory_estimate(tmp_path, monkeypatch):
+    # A wide envmap added 25-45 bytes a texel to a fit's peak RSS (0.7 GB at 8192 x
+    # 4096) that the estimate, calibrated on a 128-wide probe, left out.
+    import numpy as np
+
+    import fitter
+    from fitter.imageio import write_image
+
+    path = tmp_path / "sky.exr"
+    write_image(str(path), np.full((256, 512, 3), 0.5, dtype=np.float32))
+    scene = fitter.Scene(width=64, height=64, supersampling=2,
+                         environment=fitter.Environment(type="envmap", file="sky.exr"))
+    material = fitter.Material.make(["lambert"])
+    assert limits.envmap_texels(scene, str(tmp_path)) == 256 * 512  # from the header
+    without = limits.job_bytes("fit", 64, 64, 2, env_lit=True)
+    assert limits.scene_bytes("fit", scene, material, str(tmp_path)) == (
+        without + limits.ENVMAP_BYTES_PER_TEXEL * 256 * 512)
+    monkeypatch.setattr(limits, "available_bytes", lambda: without / limits.MEMORY_SHARE + 1.0)
+    limits.check_scene("fit", scene.replace(environment=fitter.Environment()), material)
+    with pytest.raises(limits.ResourceError, match=r"^job.toml: .* with an envmap of 0\.1 M "
+                       r"texels needs about"):
+        limits.check_scene("fit", scene, material, where="job.toml", base_dir=str(tmp_path))

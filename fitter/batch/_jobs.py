@@ -123,7 +123,7 @@ def _entry(index: int, item: Any, validate: bool | None) -> Entry:
 
         preflight(job)
         return Entry(index, label, job=job, target=target, key=resume_key(job, target),
-                     memory=scene_bytes("fit", job.scene, job.material))
+                     memory=scene_bytes("fit", job.scene, job.material, job.base_dir))
     except (FitterError, OSError) as exc:
         return Entry(index, label, error=_one_line(exc))
 

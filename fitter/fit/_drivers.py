@@ -118,7 +118,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     import_ahead(scene, material)
     n_starts = _args.option("n_starts", n_starts)
     identifiability = _args.option("identifiability", identifiability)
-    check_scene("fit", scene, material, n_starts=n_starts)
+    check_scene("fit", scene, material, n_starts=n_starts, base_dir=base_dir)
     target = _args.images(target, "target", scene)
     if target.shape not in ((scene.height, scene.width, 3), (1, scene.height, scene.width, 3)):
         several = "; use fit_batch for several targets" if target.ndim == 4 else ""
@@ -275,7 +275,7 @@ def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
     scene = _args.scene_of(scene)
     identifiability = _args.option("identifiability", identifiability)
     material = material if isinstance(material, Material) else Material.make(material)
-    check_scene("fit", scene, material)
+    check_scene("fit", scene, material, base_dir=kwargs.get("base_dir"))
     targets = _args.images(targets, "targets", scene)
     if targets.ndim != 4 or len(targets) == 0:
         raise FitError(f"targets have shape {targets.shape}, expected (B, H, W, 3) with B >= 1 "
