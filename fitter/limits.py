@@ -150,7 +150,7 @@ def _check_film(task: str, width: int, height: int, supersampling: int, where: s
             " needs about "
             f"{need / 1e9:.1f} GB of memory and this machine has {have / 1e9:.1f} GB "
             "available; lower scene.supersampling or the image size (or crop the image to "
-            "the sphere)")
+            f"the sphere){', or use a narrower envmap' if env_texels else ''}")
 
 
 def check_spp(spp: int, key: str, where: str = "") -> None:
