@@ -381,9 +381,9 @@ def cmd_synth(args) -> int:
     from .outdir import make_folders, remove_made
 
     params = pipeline.truth_params(job)
-    made = make_folders(out)
-    tmp = tempfile.mkdtemp(prefix=".synth.tmp-", dir=out)
+    made, tmp = make_folders(out), None
     try:
+        tmp = tempfile.mkdtemp(prefix=".synth.tmp-", dir=out)
         with log.stage(f"rendering {job.name} with Mitsuba ({spp} spp)"):
             synth.write_case(tmp, job.scene, job.material, params, spp=spp, seed=seed,
                              base_dir=job.base_dir, extra={"config": job.path},
@@ -391,7 +391,8 @@ def cmd_synth(args) -> int:
         for name in sorted(os.listdir(tmp)):
             os.replace(os.path.join(tmp, name), os.path.join(out, name))
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if tmp:
+            shutil.rmtree(tmp, ignore_errors=True)
         remove_made(made)  # (the folders it made for this run: none of the user's)
         raise
     shutil.rmtree(tmp, ignore_errors=True)

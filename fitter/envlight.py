@@ -211,7 +211,7 @@ def sun_cells(width: int, cell: int = SUN_CELL) -> tuple:
     ``cell`` at SUN_CELL_WIDTH (``FINER_SUN``'s doubles the default's cells per texel,
     over the same texels)."""
     per = max(1, SUN_CELL * SUN_CELL_WIDTH // max(width, SUN_CELL_WIDTH))
-    return per * cell // SUN_CELL, SUN_MAX_TEXELS * SUN_CELL ** 2 // per ** 2
+    return max(1, per * cell // SUN_CELL), SUN_MAX_TEXELS * SUN_CELL ** 2 // per ** 2
 
 
 def split_sun(img: np.ndarray, cell: int = SUN_CELL, sub: int = SUN_SUB,
