@@ -577,3 +577,11 @@ def test_an_envmap_is_read_once_per_version_of_its_file(tmp_path):
     changed = load_environment(env)
     np.testing.assert_array_equal(np.asarray(changed.image), 0.25)
     assert envlight.env_lights("envmap", changed.image, changed.constant).sky is not lights.sky
+
+
+def test_a_map_changed_in_place_gets_new_lights():
+    img = np.full((16, 32, 3), 0.5)
+    before = envlight.env_lights("envmap", img, np.zeros(3))
+    img[4:6, 8:10] = 900.0  # a sun now, in the same (writable) array
+    after = envlight.env_lights("envmap", img, np.zeros(3))
+    assert before.sun_dir.shape[0] == 0 and after.sun_dir.shape[0] > 0
