@@ -32,13 +32,11 @@ the env samples elsewhere (``suncells.sun_samples``).
 
 from __future__ import annotations
 
-import hashlib
-import threading
-import weakref
 from typing import NamedTuple
 
 import numpy as np
 
+from ._keep import derived
 from .skystencil import (  # noqa: F401
     BLOCK,
     LOBE_NODES,
@@ -112,21 +110,34 @@ def uv_to_dir(u, v):
     return np.stack([s * np.sin(phi), np.cos(theta), -s * np.cos(phi)], -1)
 
 
+def _column_taps(u, w: int):
+    """Mitsuba's bilinear lookup along u of a map ``w`` wide: the columns (x0, x1),
+    wrapping, and x1's weight (texel centres at (i + 0.5) / w)."""
+    fx = u * w - 0.5
+    x0 = np.floor(fx)
+    x0i = x0.astype(np.int64) % w
+    return x0i, (x0i + 1) % w, fx - x0
+
+
+def _row_taps(v, h: int):
+    """Along v' of a map ``h`` high: the rows (y0, y0 + 1) and the second's weight
+    (rows at v' = j / (h - 1), the poles)."""
+    fy = v * (h - 1)
+    y0 = np.clip(np.floor(fy), 0, h - 2)
+    y0i = y0.astype(np.int64)
+    return y0i, y0i + 1, np.clip(fy - y0, 0.0, 1.0)
+
+
 def bilinear(img, u, v):
     """Mitsuba's bilinear lookup of a (H, W, 3) lat-long image at (u, v')."""
     h, w = img.shape[:2]
-    fx = u * w - 0.5
-    fy = v * (h - 1)
-    x0 = np.floor(fx)
-    y0 = np.clip(np.floor(fy), 0, h - 2)
-    wx, wy = (fx - x0)[..., None], np.clip(fy - y0, 0.0, 1.0)[..., None]
-    x0i = x0.astype(np.int64) % w
-    x1i = (x0i + 1) % w
-    y0i = y0.astype(np.int64) * w
+    x0, x1, wx = _column_taps(u, w)
+    y0, y1, wy = _row_taps(v, h)
+    wx, wy = wx[..., None], wy[..., None]
     flat = img.reshape(-1, img.shape[-1])
     take = lambda i: np.take(flat, i, axis=0)
-    top = take(y0i + x0i) * (1 - wx) + take(y0i + x1i) * wx
-    bot = take(y0i + w + x0i) * (1 - wx) + take(y0i + w + x1i) * wx
+    top = take(y0 * w + x0) * (1 - wx) + take(y0 * w + x1) * wx
+    bot = take(y1 * w + x0) * (1 - wx) + take(y1 * w + x1) * wx
     return top * (1 - wy) + bot * wy
 
 
@@ -158,21 +169,16 @@ class Pyramid:
         v = (np.arange(h)[:, None] + off[None]) / (h - 1)  # (h, sub)
         vc = np.clip(v, 0.0, 1.0)
         wt = (np.sin(np.pi * vc) + 1e-9) * ((v >= 0) & (v <= 1))
-        fy = vc * (hi - 1)
-        y0 = np.clip(np.floor(fy), 0, hi - 2).astype(np.int64)
-        wy = np.clip(fy - y0, 0.0, 1.0)
+        y0, y1, wy = _row_taps(vc, hi)
         rows = np.zeros((h, wi, img.shape[-1]))  # the weighted rows at each level row
         for b in range(sub):
             rows += (wt[:, b] * (1 - wy[:, b]))[:, None, None] * img[y0[:, b]]
-            rows += (wt[:, b] * wy[:, b])[:, None, None] * img[y0[:, b] + 1]
-        fx = (np.arange(w)[:, None] + 0.5 + off[None]) / w * wi - 0.5  # (w, sub)
-        x0 = np.floor(fx)
-        wx = fx - x0
-        x0 = x0.astype(np.int64) % wi
+            rows += (wt[:, b] * wy[:, b])[:, None, None] * img[y1[:, b]]
+        x0, x1, wx = _column_taps((np.arange(w)[:, None] + 0.5 + off[None]) / w, wi)  # (w, sub)
         num = np.zeros((h, w, img.shape[-1]))
         for a in range(sub):
             num += (1 - wx[:, a])[None, :, None] * rows[:, x0[:, a]]
-            num += wx[:, a][None, :, None] * rows[:, (x0[:, a] + 1) % wi]
+            num += wx[:, a][None, :, None] * rows[:, x1[:, a]]
         return num / (sub * wt.sum(1))[:, None, None]
 
     def lookup(self, dirs, size):
@@ -266,54 +272,42 @@ def split_sun(img: np.ndarray, cell: int = SUN_CELL, sub: int = SUN_SUB,
     return cen / np.linalg.norm(cen, axis=-1, keepdims=True), irr[keep], sky
 
 
-#: Per kind (the light map at a width, "pyramid"), the last map's value with its key
-#: (shape, content hash): a fit asks for one map's lights four times (its geometry, the
-#: stated errors').
-_LAST: dict = {}
-_LAST_LOCK = threading.Lock()
+def _unchanging(image) -> bool:
+    """Whether ``image`` cannot change under its identity (a device array, a read-only
+    NumPy one): values made from it may be kept with it (``_keep.derived``)."""
+    return not (isinstance(image, np.ndarray) and image.flags.writeable)
 
 
-def _last(kind, image, make):
-    """``make()`` of ``image`` (a NumPy or device array), or the value made last for
-    this kind and the same image object, or an equal one (its arrays read-only)."""
-    # (the same object: a device array, or a read-only one, cannot have changed;
-    # an 8192-wide map took 1 s to hash)
-    fixed = not (isinstance(image, np.ndarray) and image.flags.writeable)
-    with _LAST_LOCK:
-        last = _LAST.get(kind)
-        if last and fixed and last[2]() is image:
-            return last[1]
-    data = np.ascontiguousarray(image)  # (a device array's host view)
-    key = (data.shape, data.dtype.str,
-           hashlib.blake2b(memoryview(data).cast("B"), digest_size=16).digest())
-    with _LAST_LOCK:
-        if last and last[0] == key:
-            _LAST[kind] = (key, last[1], weakref.ref(image))
-            return last[1]
-    value = make()  # (outside the lock: two threads may both make it, the same)
-    for a in value.levels if isinstance(value, Pyramid) else (value,):
-        a.flags.writeable = False
-    with _LAST_LOCK:
-        _LAST[kind] = (key, value, weakref.ref(image))
-    return value
+def _light_map_of(image) -> np.ndarray:
+    """``light_map`` of ``image`` as float64, kept with an unchanging image: a fit asks
+    for one map's lights four times (its geometry, the stated errors')."""
+    def make():
+        return np.array(light_map(np.asarray(image, np.float64)), np.float64)
+
+    return derived(image, ("light map", LIGHT_WIDTH), make) if _unchanging(image) else make()
 
 
 def env_lights(env_type: str, image, constant: np.ndarray,
                detail: Detail | None = None, sun: tuple = (SUN_CELL, SUN_SUB)) -> EnvLights | None:
     """The split environment of ``image`` (H, W, 3), a NumPy or device array (the
-    same object again reuses its light map: ``_last``), or None for a black one;
+    same unchanging object again reuses its light map and pyramid), or None for a black one;
     ``detail``: the sky term's discretisation, which ``geometry.build_geometry``
     uses (default ``Detail()``, made per call: ``benchmarks/envlight.py`` varies its
     defaults); ``sun``: (cell, sub) of ``split_sun`` (the sun's discretisation)."""
     detail = Detail() if detail is None else detail
     if env_type == "envmap":
-        image = _last(("light map", LIGHT_WIDTH), image,
-                      lambda: np.array(light_map(np.asarray(image, np.float64)), np.float64))
-        cell, most = sun_cells(image.shape[1], sun[0])
-        sun_dir, sun_irr, sky = split_sun(image, cell, sun[1], most)
-        # (a copy: level 0 is the sky itself, which may be the light map)
-        return EnvLights(sun_dir, sun_irr,
-                         _last("pyramid", sky, lambda: Pyramid(np.array(sky))), detail)
+        lit = _light_map_of(image)
+        cell, most = sun_cells(lit.shape[1], sun[0])
+        sun_dir, sun_irr, sky = split_sun(lit, cell, sun[1], most)
+
+        def pyramid():  # (of the sky, which the sun's cells do not change; a read-only copy)
+            levels = Pyramid(np.array(sky))
+            for level in levels.levels:
+                level.flags.writeable = False
+            return levels
+
+        return EnvLights(sun_dir, sun_irr, derived(lit, "pyramid", pyramid) if _unchanging(lit)
+                         else pyramid(), detail)
     rad = np.asarray(constant, dtype=np.float64)
     if env_type != "constant" or not np.any(rad > 0):
         return None

@@ -380,7 +380,7 @@ def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
     if env_light:
         from .envlight import env_lights
 
-        lighting = env_lights(scene.environment.type, env64.image,  # (kept: _last)
+        lighting = env_lights(scene.environment.type, env64.image,  # (kept with it: envlight)
                               np.asarray(env64.constant))
     geo = build_geometry(scene, scene.environment.type, env64, lighting)
     # float32 renders still get geometry computed in float64, then rounded.

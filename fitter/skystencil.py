@@ -415,10 +415,6 @@ def _table_all_fn():
     return jax.jit(run, static_argnames="rows", compiler_options=NO_LIBRARY_FUSIONS)
 
 
-def _table_all(*args, rows):
-    return _table_all_fn()(*args, rows=rows)
-
-
 def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
               chunk: int = 2048, dtype=np.float32, rings: int = 1):
     """Env samples in blocks (``blocks``) and their sky-stencil weights.
@@ -485,6 +481,7 @@ def sky_table(sky, normal, view, weight=None, nodes: int = LOBE_NODES,
     # One jitted map over the chunks writing straight into the (nb, B x 3, N) float64
     # table: no host copy of it (a fresh 0.5 GB costs seconds of page faults here).
     # (to_device: no copy kernel compiled per shape, as jnp.asarray of a host array does)
-    c = _table_all(*(to_device(cast(x.reshape((-1, step) + x.shape[1:]))) for x in (nrm, wo, wt)),
-                   *(to_device(a) for a in consts), rows=3 * BLOCK)
+    c = _table_all_fn()(*(to_device(cast(x.reshape((-1, step) + x.shape[1:])))
+                          for x in (nrm, wo, wt)), *(to_device(a) for a in consts),
+                        rows=3 * BLOCK)
     return order, window, pos, c

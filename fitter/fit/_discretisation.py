@@ -115,7 +115,7 @@ def _lighting(environment, base_dir, kind):
     ``envlight.Detail``, the sky alone on that stencil (``_half_rings``). Once per
     environment (a compiled env_plastic fit made its three every time: 0.06 s)."""
     env64 = load_environment(environment, base_dir)
-    image, constant = env64.image, np.asarray(env64.constant)  # (image: envlight._last)
+    image, constant = env64.image, np.asarray(env64.constant)  # (its lights kept with it)
     if isinstance(kind, envlight.Detail):
         lighting = envlight.env_lights(environment.type, image, constant, detail=kind)
         return None if lighting is None else lighting._replace(
