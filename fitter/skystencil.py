@@ -98,24 +98,38 @@ def _cells(sub, sub_phi=None, rings: int = 1):
     return tuple(np.concatenate(a) for a in zip(*out)) + (n,)
 
 
+def _sub_directions(ct, ph):
+    """Unit directions (M, 3) of sub-cells at (cos alpha, phi) about +z."""
+    st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
+    return np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1)
+
+
+def _cos_weights(d, dw, th):
+    """max(n . d, 0) dw (T, M) of sub-cells ``d`` (M, 3) of solid angle ``dw`` (M,)
+    for normals n = (sin t, 0, cos t) at the angles ``th`` (T,), an angle a row:
+    each row's temporaries stay in cache (whole (T, M) products took 3x as long).
+    The callers sum them per cell by reshaping (a cell's sub-cells are consecutive
+    in ``_cells``), not by ``np.bincount`` per angle: ``_tables`` 0.13 -> 0.05 CPU-s,
+    ``_node_geometry`` 0.17 -> 0.10."""
+    out = np.empty((th.size, d.shape[0]))
+    for t, row in zip(th, out):
+        np.maximum(d[:, 0] * np.sin(t) + d[:, 2] * np.cos(t), 0.0, out=row)
+        row *= dw
+    return out
+
+
 def _tables(rings: int = 1):
     """Per cell and angle theta_o between n and r: Q = int_cell max(n.w, 0) dw, the unit
     direction of the cos-weighted centroid (local frame: r = +z, n in the xz plane) and
     the cell's angular size sqrt(solid angle)."""
     ct, ph, dct, dph, cell, n = _cells(_FINE, rings=rings)
-    st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
-    dw = dct * dph
+    assert np.array_equal(cell, np.repeat(np.arange(n), _FINE * _FINE))  # consecutive
+    d, dw = _sub_directions(ct, ph), dct * dph
     th = np.linspace(0.0, np.pi / 2, N_THETA)
-    q = np.zeros((N_THETA, n))
-    cen = np.zeros((N_THETA, n, 3))
-    size = np.zeros((N_THETA, n))
-    d = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1)
-    for t in range(N_THETA):
-        w = np.maximum(d @ np.array([np.sin(th[t]), 0.0, np.cos(th[t])]), 0.0) * dw
-        q[t] = np.bincount(cell, w, n)
-        size[t] = np.sqrt(np.bincount(cell, dw, n))
-        for i in range(3):
-            cen[t, :, i] = np.bincount(cell, w * d[:, i], n)
+    w = _cos_weights(d, dw, th).reshape(N_THETA, n, _FINE * _FINE)  # a cell's sub-cells
+    q = w.sum(-1)
+    cen = np.matmul(w.transpose(1, 0, 2), d.reshape(n, -1, 3)).transpose(1, 0, 2)
+    size = np.broadcast_to(np.sqrt(dw.reshape(n, -1).sum(-1)), (N_THETA, n)).copy()
     nl = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)
     norm = np.linalg.norm(cen, axis=-1, keepdims=True)
     cen = np.where(norm > 0, cen / np.where(norm > 0, norm, 1.0), nl[:, None])
@@ -124,7 +138,7 @@ def _tables(rings: int = 1):
 
 @functools.cache
 def _cached_tables(rings: int = 1):
-    """``_tables``, built on first use (~0.2 s), not at import; kept on disk beside
+    """``_tables``, built on first use (~0.05 s), not at import; kept on disk beside
     the compilation cache when that is on (``compilation_cache.cached_arrays``)."""
     from .compilation_cache import cached_arrays
 
@@ -165,7 +179,7 @@ def _node_of(theta, nodes):
 @functools.cache
 def node_geometry(nodes: int = LOBE_NODES, sub: tuple = LOBE_SUB, rings: int = 1):
     """``_node_geometry``, kept on disk beside the compilation cache when that is
-    on (``compilation_cache.cached_arrays``): ~0.3 s of NumPy a process."""
+    on (``compilation_cache.cached_arrays``): ~0.1 s of NumPy a process."""
     from .bsdf.base import Cosines
     from .compilation_cache import cached_arrays
 
@@ -202,20 +216,16 @@ def _node_geometry(nodes: int, sub: tuple, rings: int = 1):
     if _FINE % sa or _FINE % sp:
         raise ValueError(f"sub = {sub}: each must divide _FINE = {_FINE}")
     ct, ph, dct, dph, cell, n_cells = _cells(_FINE, rings=rings)
-    st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
-    d = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1)
-    dw = dct * dph
-    k = np.arange(ct.size) % (_FINE * _FINE)
-    gid = cell * (sa * sp) + (k // _FINE) // (_FINE // sa) * sp + (k % _FINE) // (_FINE // sp)
-    ng = n_cells * sa * sp
+    assert np.array_equal(cell, np.repeat(np.arange(n_cells), _FINE * _FINE))
+    # A cell's _FINE x _FINE sub-cells (alpha rows, phi columns) in sa x sp groups,
+    # reordered so that each group's are consecutive.
+    group = np.arange(ct.size).reshape(n_cells, sa, _FINE // sa, sp, _FINE // sp)
+    group = group.transpose(0, 1, 3, 2, 4).reshape(-1)
+    d = _sub_directions(ct[group], ph[group])
     th = node_angles(nodes)
-    w = np.zeros((nodes, ng))
-    cen = np.zeros((nodes, ng, 3))
-    for t in range(nodes):
-        wf = np.maximum(d @ np.array([np.sin(th[t]), 0.0, np.cos(th[t])]), 0.0) * dw
-        w[t] = np.bincount(gid, wf, ng)
-        for i in range(3):
-            cen[t, :, i] = np.bincount(gid, wf * d[:, i], ng)
+    wf = _cos_weights(d, (dct * dph)[group], th).reshape(nodes, n_cells * sa * sp, -1)
+    w = wf.sum(-1)
+    cen = np.matmul(wf.transpose(1, 0, 2), d.reshape(w.shape[1], -1, 3)).transpose(1, 0, 2)
     n = np.stack([np.sin(th), np.zeros_like(th), np.cos(th)], -1)[:, None]
     wo = np.stack([np.sin(2 * th), np.zeros_like(th), np.cos(2 * th)], -1)[:, None]
     norm = np.linalg.norm(cen, axis=-1, keepdims=True)

@@ -22,7 +22,7 @@ def import_ahead(scene=None, material=None) -> None:
     """Import optimistix (0.3 s, which tracing the solve needs) on a thread,
     beside the set-up's NumPy and the start search's XLA compile, and, where the
     environment lights an opaque lobe, make the sky stencil's constant tables
-    there (``skystencil.warm``: 0.3 s of NumPy the set-up would wait for, or
+    there (``skystencil.warm``: 0.15 s of NumPy the set-up would wait for, or
     their files' loading where a cache folder holds them,
     ``compilation_cache.cached_arrays``); optimistix not when the traces may
     come from disk (``_cache``), which run without it."""
