@@ -42,6 +42,19 @@ MEMORY_MODEL = {
 #: 25-45 bytes a texel with the probe's scene 2048, 4096 and 8192 wide (fits at 128^2 x
 #: 4^2 of 1.8, 2.1 and 2.5 GB peak RSS), 48 estimated.
 ENVMAP_BYTES_PER_TEXEL = 48.0
+#: Peak memory a sun cell adds per film sample (width x height x k^2), by task, beyond
+#: ``CALIBRATED_SUN_CELLS`` (``envlight.split_sun``: a bright source lights the opaque
+#: lobes as that many directional lights on every sub-pixel sample near its highlight,
+#: in the fitted model and, for a fit, in the stated errors' finer ones). Measured with
+#: the probe's sun made 10 and 20 deg wide (100-276 cells, 128^2 at k = 2 and 4, the sun
+#: behind the camera: its highlight mid-sphere): a fit 58-62 bytes, a render 4.5. A 20
+#: deg sun took a 128^2 fit from 1.8 to 5.6 GB and a 256^2 one past 17 GB, where the
+#: model without this term said 1.8 and 4.5; at 256^2 a 10 deg sun (100 cells) peaked at
+#: 4.5 GB, estimated 9.0 with this term (the finer model then samples its pixels,
+#: ``fit._discretisation.MAX_FINER_SAMPLES``): an over-statement, never an under one.
+SUN_CELL_BYTES = {"fit": 62.0, "render": 6.0}
+#: Sun cells of the shipped probe (a 3 deg sun), which ``MEMORY_MODEL`` includes.
+CALIBRATED_SUN_CELLS = 32
 #: Share of the machine's available memory a fit may plan to use.
 MEMORY_SHARE = 0.8
 
@@ -51,14 +64,16 @@ class ResourceError(FitterError):
 
 
 def job_bytes(task: str, width: int, height: int, supersampling: int,
-              env_lit: bool = False, env_texels: int = 0) -> float:
+              env_lit: bool = False, env_texels: int = 0, sun_cells: int = 0) -> float:
     """Estimated peak memory (bytes) of a ``task`` ("fit" or "render") at this
     film size (``env_lit``: an environment lights opaque lobes; ``env_texels``: its
-    envmap's size); ``MEMORY_MODEL``, ``ENVMAP_BYTES_PER_TEXEL``."""
+    envmap's size; ``sun_cells``: its sun's cells); ``MEMORY_MODEL``,
+    ``ENVMAP_BYTES_PER_TEXEL``, ``SUN_CELL_BYTES``."""
     fixed, per_pixel, per_sample = MEMORY_MODEL[(task, bool(env_lit))]
-    pixels = float(width) * float(height)
-    return (fixed + per_pixel * pixels + per_sample * pixels * supersampling ** 2
-            + ENVMAP_BYTES_PER_TEXEL * env_texels)
+    samples = float(width) * float(height) * supersampling ** 2
+    extra_cells = max(sun_cells - CALIBRATED_SUN_CELLS, 0) if env_lit else 0
+    return (fixed + per_pixel * float(width) * float(height) + per_sample * samples
+            + ENVMAP_BYTES_PER_TEXEL * env_texels + SUN_CELL_BYTES[task] * extra_cells * samples)
 
 
 def envmap_texels(scene, base_dir: str | None = None) -> int:
@@ -75,6 +90,30 @@ def envmap_texels(scene, base_dir: str | None = None) -> int:
     except Exception:  # noqa: BLE001 (the read names the problem)
         return 0
     return width * height
+
+
+def sun_cell_count(scene, material, base_dir: str | None = None) -> int:
+    """Cells of the sun lighting ``material``'s opaque lobes (``envlight.env_lights``,
+    which the fit then reuses); 0 without an envmap lighting them, or where the map
+    cannot be read (reading it says why)."""
+    from .envlight import env_lights, lit_by_environment
+
+    env = scene.environment
+    if env.type != "envmap" or not lit_by_environment(scene, material):
+        return 0
+    from .environment import load_environment
+    from .hugepages import advice_off
+
+    @advice_off  # (a wide map's read and pyramid are large: ``fitter.hugepages``)
+    def split():
+        data = load_environment(env, base_dir)
+        return env_lights(env.type, data.image, data.constant)
+
+    try:
+        lights = split()
+    except Exception:  # noqa: BLE001 (the read names the problem)
+        return 0
+    return 0 if lights is None else int(lights.sun_dir.shape[0])
 
 
 def available_bytes() -> float | None:
@@ -95,11 +134,12 @@ def available_bytes() -> float | None:
 def scene_bytes(task: str, scene, material, base_dir: str | None = None) -> float:
     """``job_bytes`` of a ``task`` on ``scene`` with ``material`` (env-lit where its
     environment lights an opaque lobe, ``envlight.lit_by_environment``; its envmap's
-    texels, ``envmap_texels``)."""
+    texels, ``envmap_texels``; its sun's cells, ``sun_cell_count``)."""
     from .envlight import lit_by_environment
 
     return job_bytes(task, scene.width, scene.height, scene.supersampling,
-                     lit_by_environment(scene, material), envmap_texels(scene, base_dir))
+                     lit_by_environment(scene, material), envmap_texels(scene, base_dir),
+                     sun_cell_count(scene, material, base_dir))
 
 
 def check_scene(task: str, scene, material, where: str = "", n_starts: int = 1,
@@ -110,16 +150,17 @@ def check_scene(task: str, scene, material, where: str = "", n_starts: int = 1,
     from .envlight import lit_by_environment
 
     args = (scene.width, scene.height, scene.supersampling)
-    env_lit = lit_by_environment(scene, material)
-    texels = envmap_texels(scene, base_dir)
+    env = (lit_by_environment(scene, material), envmap_texels(scene, base_dir),
+           sun_cell_count(scene, material, base_dir))
     if task == "fit":
-        check_fit(*args, n_starts, where, env_lit, texels)
+        check_fit(*args, n_starts, where, *env)
     else:
-        _check_film(task, *args, where, env_lit, texels)
+        _check_film(task, *args, where, *env)
 
 
 def check_fit(width: int, height: int, supersampling: int, n_starts: int,
-              where: str = "", env_lit: bool = False, env_texels: int = 0) -> None:
+              where: str = "", env_lit: bool = False, env_texels: int = 0,
+              sun_cells: int = 0) -> None:
     """Raise ``ResourceError`` if a fit of this size cannot run here.
 
     ``where`` prefixes the message (a config path, or "" for the Python API).
@@ -128,11 +169,11 @@ def check_fit(width: int, height: int, supersampling: int, n_starts: int,
         at = f"{where}: " if where else ""
         raise ResourceError(f"{at}fit.n_starts = {n_starts} is over the limit of {MAX_STARTS} "
                             "starts; use fewer starts")
-    _check_film("fit", width, height, supersampling, where, env_lit, env_texels)
+    _check_film("fit", width, height, supersampling, where, env_lit, env_texels, sun_cells)
 
 
 def _check_film(task: str, width: int, height: int, supersampling: int, where: str,
-                env_lit: bool, env_texels: int = 0) -> None:
+                env_lit: bool, env_texels: int = 0, sun_cells: int = 0) -> None:
     """Raise ``ResourceError`` over ``MAX_SUPERSAMPLING``, or where ``job_bytes``
     is over ``MEMORY_SHARE`` of the memory available now."""
     at = f"{where}: " if where else ""
@@ -140,17 +181,20 @@ def _check_film(task: str, width: int, height: int, supersampling: int, where: s
         raise ResourceError(f"{at}scene.supersampling = {supersampling} is over the limit of "
                             f"{MAX_SUPERSAMPLING} (that is {MAX_SUPERSAMPLING ** 2} samples a "
                             "pixel); 4 is enough for smooth lobes")
-    need = job_bytes(task, width, height, supersampling, env_lit, env_texels)
+    need = job_bytes(task, width, height, supersampling, env_lit, env_texels, sun_cells)
     have = available_bytes()
     if have is not None and need > MEMORY_SHARE * have:
+        big_sun = env_lit and sun_cells > CALIBRATED_SUN_CELLS
         raise ResourceError(
             f"{at}a {width}x{height} {task} at scene.supersampling = {supersampling}"
             f"{' lit by its environment' if env_lit else ''}"
             f"{f' with an envmap of {env_texels / 1e6:.1f} M texels' if env_texels else ''}"
+            f"{f' whose bright source makes {sun_cells} sun cells' if big_sun else ''}"
             " needs about "
             f"{need / 1e9:.1f} GB of memory and this machine has {have / 1e9:.1f} GB "
             "available; lower scene.supersampling or the image size (or crop the image to "
-            f"the sphere){', or use a narrower envmap' if env_texels else ''}")
+            f"the sphere){', or use a narrower envmap' if env_texels and not big_sun else ''}"
+            f"{', or an envmap with a smaller bright source' if big_sun else ''}")
 
 
 def check_spp(spp: int, key: str, where: str = "") -> None:

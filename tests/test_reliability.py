@@ -283,3 +283,46 @@ def test_an_envmap_counts_in_the_memory_estimate(tmp_path, monkeypatch):
     with pytest.raises(limits.ResourceError, match=r"^job.toml: .* with an envmap of 0\.1 M "
                        r"texels needs about"):
         limits.check_scene("fit", scene, material, where="job.toml", base_dir=str(tmp_path))
+
+
+def test_a_large_bright_source_counts_in_the_memory_estimate(tmp_path, monkeypatch):
+    # A bright source of ~20 deg lights the opaque lobes as ~300 sun cells on every
+    # sub-pixel sample near its highlight: a 128^2 fit peaked at 5.6 GB and a 256^2 one
+    # past 17 GB where the estimate said 1.8 and 4.5 (killed by the kernel, not refused).
+    import numpy as np
+
+    import fitter
+    from fitter.imageio import write_image
+
+    h, w = 32, 64  # a lat-long map: a dim sky and a bright disc 40 deg wide
+    v, u = np.mgrid[0:h, 0:w] + 0.5
+    theta, phi = np.pi * v / h, 2 * np.pi * u / w
+    d = np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)], -1)
+    disc = d @ np.array([0.0, 0.6, 0.8]) > np.cos(np.radians(20.0))
+    sky = np.where(disc[..., None], 300.0, 0.5) * np.ones(3)
+    write_image(str(tmp_path / "studio.exr"), sky.astype(np.float32))
+    write_image(str(tmp_path / "small.exr"), np.where(
+        (d @ np.array([0.0, 0.6, 0.8]) > np.cos(np.radians(3.0)))[..., None], 300.0, 0.5)
+        * np.ones(3, np.float32))
+    scene = fitter.Scene(width=64, height=64, supersampling=2,
+                         environment=fitter.Environment(type="envmap", file="studio.exr"))
+    material = fitter.Material.make(["lambert", "torrance_sparrow"])
+    base = str(tmp_path)
+    cells = limits.sun_cell_count(scene, material, base)
+    assert cells > 4 * limits.CALIBRATED_SUN_CELLS  # the disc's ~60 texels, ~4 cells each
+    small = scene.replace(environment=fitter.Environment(type="envmap", file="small.exr"))
+    assert 0 < limits.sun_cell_count(small, material, base) <= limits.CALIBRATED_SUN_CELLS
+    texels = h * w
+    without = limits.job_bytes("fit", 64, 64, 2, env_lit=True, env_texels=texels)
+    assert limits.scene_bytes("fit", small, material, base) == without  # the model's own sun
+    extra = limits.SUN_CELL_BYTES["fit"] * (cells - limits.CALIBRATED_SUN_CELLS) * 64 * 64 * 4
+    assert limits.scene_bytes("fit", scene, material, base) == pytest.approx(without + extra)
+    # Lit by point lights only, the map's sun lights nothing.
+    assert limits.sun_cell_count(scene, fitter.Material.make(["mirror"]), base) == 0
+    monkeypatch.setattr(limits, "available_bytes", lambda: (without + extra / 2)
+                        / limits.MEMORY_SHARE)
+    limits.check_scene("fit", small, material, base_dir=base)
+    with pytest.raises(limits.ResourceError, match=rf"^job.toml: .* whose bright source makes "
+                       rf"{cells} sun cells needs about .* or an envmap with a smaller bright "
+                       r"source$"):
+        limits.check_scene("fit", scene, material, where="job.toml", base_dir=base)
