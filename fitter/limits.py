@@ -46,13 +46,13 @@ ENVMAP_BYTES_PER_TEXEL = 48.0
 #: ``CALIBRATED_SUN_CELLS`` (``envlight.split_sun``: a bright source lights the opaque
 #: lobes as that many directional lights on every sub-pixel sample near its highlight,
 #: in the fitted model and, for a fit, in the stated errors' finer ones). Measured with
-#: the probe's sun made 10 and 20 deg wide (100-276 cells, 128^2 at k = 2 and 4, the sun
-#: behind the camera: its highlight mid-sphere): a fit 58-62 bytes, a render 4.5. A 20
-#: deg sun took a 128^2 fit from 1.8 to 5.6 GB and a 256^2 one past 17 GB, where the
-#: model without this term said 1.8 and 4.5; at 256^2 a 10 deg sun (100 cells) peaked at
-#: 4.5 GB, estimated 9.0 with this term (the finer model then samples its pixels,
+#: the probe's sun made 10 and 20 deg wide (100-308 cells, 128^2 at k = 2 and 4, the sun
+#: where the probe has it and behind the camera): a fit 57-66 bytes, a render 7.5. A 20
+#: deg sun took a 128^2 fit to 5.7-6.6 GB and a 256^2 one past 17 GB, where the model
+#: without this term said 1.8 and 4.5; at 256^2 a 10 deg sun (100 cells) peaked at
+#: 4.5 GB, estimated 9.9 with this term (the finer model then samples its pixels,
 #: ``fit._discretisation.MAX_FINER_SAMPLES``): an over-statement, never an under one.
-SUN_CELL_BYTES = {"fit": 62.0, "render": 6.0}
+SUN_CELL_BYTES = {"fit": 75.0, "render": 9.0}
 #: Sun cells of the shipped probe (a 3 deg sun), which ``MEMORY_MODEL`` includes.
 CALIBRATED_SUN_CELLS = 32
 #: Share of the machine's available memory a fit may plan to use.
