@@ -52,14 +52,14 @@ PROBE_SUN = ((0.45, 0.55, 0.70), 3.0, 300.0)
 
 
 def make_probe(path: str, width: int = 128, height: int = 64, sub: int = 8,
-               sun: tuple = PROBE_SUN) -> None:
+               suns: tuple = (PROBE_SUN,)) -> None:
     """Write a small HDR light probe (Mitsuba's lat-long mapping, linear RGB).
 
     A sky gradient (zenith blue, horizon pale) over a darker ground, a dim
-    warm window (a rectangle left of the camera) and a bright sun (``sun``:
-    direction, angular diameter in degrees, radiance / sky; ``PROBE_SUN``: ~3 deg
-    at ~300x the sky radiance near it), each texel the average of ``sub`` x
-    ``sub`` sub-samples so that the sun disk is area-weighted.
+    warm window (a rectangle left of the camera) and bright suns (``suns``: each
+    a direction, angular diameter in degrees and radiance / sky; ``PROBE_SUN``:
+    ~3 deg at ~300x the sky radiance near it), each texel the average of ``sub``
+    x ``sub`` sub-samples so that a sun's disk is area-weighted.
     """
     s = sub
     v, u = np.mgrid[0:height * s, 0:width * s].astype(np.float64)
@@ -74,10 +74,9 @@ def make_probe(path: str, width: int = 128, height: int = 64, sub: int = 8,
     rad = np.where((elev > 0)[..., None], sky, ground)
     window = (np.abs(np.arctan2(d[..., 0], -d[..., 2]) + 1.9) < 0.35) & (np.abs(elev - 0.2) < 0.25)
     rad = np.where(window[..., None], np.array([2.0, 1.7, 1.3]), rad)
-    sun, diam, ratio = sun
-    sun = np.asarray(sun) / np.linalg.norm(sun)
-    disk = d @ sun > np.cos(np.radians(diam / 2))
-    rad = np.where(disk[..., None], ratio * np.array([1.0, 0.95, 0.85]), rad)
+    for sun, diam, ratio in suns:
+        disk = d @ (np.asarray(sun) / np.linalg.norm(sun)) > np.cos(np.radians(diam / 2))
+        rad = np.where(disk[..., None], ratio * np.array([1.0, 0.95, 0.85]), rad)
     img = rad.reshape(height, s, width, s, 3).mean((1, 3))
     write_image(path, img, _FIXED_STAMP)
 
