@@ -56,7 +56,11 @@ from .skystencil import (  # noqa: F401
 
 #: A texel is part of the sun when its luminance exceeds this x the median.
 SUN_RATIO = 20.0
-#: At most this many sun texels (the brightest); the rest stays in the sky.
+#: At most this many sun texels (the brightest), counted by solid angle in texels at the
+#: equator (``_row_shares``); the rest stays in the sky. A 3 deg sun at the zenith is the
+#: whole pole row of the map (128 texels of ~1/40 of one at the equator): counted one a
+#: texel, half of it stayed in the sky stencil, and env_plastic's rho_d came out 0.017 low
+#: at 4.8 stated errors against Mitsuba (now 0.0005, 0.3), in 300 cells (now 14).
 SUN_MAX_TEXELS = 64
 #: Sun lights: cells of 1 / SUN_CELL texel, integrated with SUN_SUB sub-samples per texel.
 #: A light at a whole texel's centroid (0.049 rad on the 128-wide probe) sharpens a
@@ -220,18 +224,27 @@ def sun_cells(width: int, cell: int = SUN_CELL) -> tuple:
     return max(1, per * cell // SUN_CELL), SUN_MAX_TEXELS * SUN_CELL ** 2 // per ** 2
 
 
+def _row_shares(h: int) -> np.ndarray:
+    """Each row's texel solid angle over the equator's, (h,): sin(theta) at the row (a
+    pole row, at theta = 0 or pi, at half a row from it)."""
+    return np.sin(np.pi * np.clip(np.arange(h), 0.5, h - 1.5) / (h - 1))
+
+
 def split_sun(img: np.ndarray, cell: int = SUN_CELL, sub: int = SUN_SUB,
               most: int = SUN_MAX_TEXELS):
     """(sun_dir (Ls, 3), sun_irradiance (Ls, 3), sky image): the map = sky + sun excess.
 
     ``cell``: sun cells of 1 / cell texel; ``sub``: sub-samples per texel (a multiple
-    of cell); ``most``: sun texels at most (the brightest)."""
+    of cell); ``most``: sun texels at most (the brightest; by solid angle,
+    ``_row_shares``)."""
     img = np.asarray(img, dtype=np.float64)
     h, w = img.shape[:2]
     lum = img @ LUMINANCE
     thresh = SUN_RATIO * max(float(np.median(lum)), 1e-12)
-    order = np.argsort(lum, axis=None)[::-1][:most]
+    order = np.argsort(lum, axis=None)[::-1]
     order = order[lum.reshape(-1)[order] > thresh]
+    if h >= 2:  # the brightest, up to ``most`` texels' solid angle at the equator
+        order = order[np.cumsum(_row_shares(h)[order // w]) <= most]
     if order.size == 0 or h < 2:
         return np.zeros((0, 3)), np.zeros((0, 3)), img
     mask = np.zeros(h * w, bool)
@@ -261,7 +274,12 @@ def split_sun(img: np.ndarray, cell: int = SUN_CELL, sub: int = SUN_SUB,
     dirs = uv_to_dir(u, v)
     e = rad * d_omega[:, None]
     wl = e @ LUMINANCE
-    cell_id = (fr // (k // cell)) * (w * cell) + fc // (k // cell)
+    # Cells of about equal solid angle: towards the poles a cell row's cells are merged
+    # in longitude (1 / sin(theta) of them; none within 30 degrees of the equator).
+    cr = fr // (k // cell)
+    merge = np.clip(np.floor(1.0 / np.maximum(np.sin(np.pi * (cr + 0.5) / ((h - 1) * cell)),
+                                              1e-300)), 1, w * cell).astype(np.int64)
+    cell_id = cr * (w * cell) + (fc // (k // cell)) // merge
     ids, inv = np.unique(cell_id, return_inverse=True)
     irr = np.zeros((ids.size, 3))
     np.add.at(irr, inv, e)
