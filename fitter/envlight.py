@@ -275,7 +275,7 @@ def split_sun(img: np.ndarray, cell: int = SUN_CELL, sub: int = SUN_SUB,
     e = rad * d_omega[:, None]
     wl = e @ LUMINANCE
     # Cells of about equal solid angle: towards the poles a cell row's cells are merged
-    # in longitude (1 / sin(theta) of them; none within 30 degrees of the equator).
+    # in longitude (1 / sin(theta) of them: only within 30 degrees of a pole).
     cr = fr // (k // cell)
     merge = np.clip(np.floor(1.0 / np.maximum(np.sin(np.pi * (cr + 0.5) / ((h - 1) * cell)),
                                               1e-300)), 1, w * cell).astype(np.int64)
