@@ -317,7 +317,7 @@ def test_a_large_bright_source_counts_in_the_memory_estimate(tmp_path, monkeypat
     assert limits.scene_bytes("fit", small, material, base) == without  # the model's own sun
     extra = limits.SUN_CELL_BYTES["fit"] * (cells - limits.CALIBRATED_SUN_CELLS) * 64 * 64 * 4
     assert limits.scene_bytes("fit", scene, material, base) == pytest.approx(without + extra)
-    # Lit by point lights only, the map's sun lights nothing.
+    # A mirror has no opaque lobe for the sun to light.
     assert limits.sun_cell_count(scene, fitter.Material.make(["mirror"]), base) == 0
     monkeypatch.setattr(limits, "available_bytes", lambda: (without + extra / 2)
                         / limits.MEMORY_SHARE)
