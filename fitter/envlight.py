@@ -239,13 +239,15 @@ def split_sun(img: np.ndarray, cell: int = SUN_CELL, sub: int = SUN_SUB,
     ``_row_shares``)."""
     img = np.asarray(img, dtype=np.float64)
     h, w = img.shape[:2]
+    if h < 2:
+        return np.zeros((0, 3)), np.zeros((0, 3)), img
     lum = img @ LUMINANCE
     thresh = SUN_RATIO * max(float(np.median(lum)), 1e-12)
     order = np.argsort(lum, axis=None)[::-1]
     order = order[lum.reshape(-1)[order] > thresh]
-    if h >= 2:  # the brightest, up to ``most`` texels' solid angle at the equator
-        order = order[np.cumsum(_row_shares(h)[order // w]) <= most]
-    if order.size == 0 or h < 2:
+    # the brightest, up to ``most`` texels' solid angle at the equator
+    order = order[np.cumsum(_row_shares(h)[order // w]) <= most]
+    if order.size == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), img
     mask = np.zeros(h * w, bool)
     mask[order] = True

@@ -135,11 +135,16 @@ def scene_bytes(task: str, scene, material, base_dir: str | None = None) -> floa
     """``job_bytes`` of a ``task`` on ``scene`` with ``material`` (env-lit where its
     environment lights an opaque lobe, ``envlight.lit_by_environment``; its envmap's
     texels, ``envmap_texels``; its sun's cells, ``sun_cell_count``)."""
+    return job_bytes(task, scene.width, scene.height, scene.supersampling,
+                     *_env_terms(scene, material, base_dir))
+
+
+def _env_terms(scene, material, base_dir) -> tuple:
+    """``job_bytes``' (env_lit, env_texels, sun_cells) of a scene and material."""
     from .envlight import lit_by_environment
 
-    return job_bytes(task, scene.width, scene.height, scene.supersampling,
-                     lit_by_environment(scene, material), envmap_texels(scene, base_dir),
-                     sun_cell_count(scene, material, base_dir))
+    return (lit_by_environment(scene, material), envmap_texels(scene, base_dir),
+            sun_cell_count(scene, material, base_dir))
 
 
 def check_scene(task: str, scene, material, where: str = "", n_starts: int = 1,
@@ -147,11 +152,8 @@ def check_scene(task: str, scene, material, where: str = "", n_starts: int = 1,
     """``check_fit`` (``task`` "fit") or the same check of a render, of ``scene``
     with ``material`` (an envmap's path relative to ``base_dir``): what
     ``fitter.fit``, ``fitter.render`` and the CLI check before any work."""
-    from .envlight import lit_by_environment
-
     args = (scene.width, scene.height, scene.supersampling)
-    env = (lit_by_environment(scene, material), envmap_texels(scene, base_dir),
-           sun_cell_count(scene, material, base_dir))
+    env = _env_terms(scene, material, base_dir)
     if task == "fit":
         check_fit(*args, n_starts, where, *env)
     else:

@@ -78,7 +78,7 @@ class SunCells(NamedTuple):
 SUN_CONE = 0.35
 SUN_EDGE = 0.05
 #: Far from the highlight an env sample sees the sun's cells as one light at their
-#: centroid, off by ~s^2 / 4 of Lambert's cos-weighted irradiance for cells of
+#: centroid, off by ~s^2 / 2 of Lambert's cos-weighted irradiance for cells of
 #: luminance-weighted rms angle s about it: within 1.7e-4 of every cell on the probe
 #: (its 3 deg sun and the cells' bilinear halo: s = 0.034 rad). A sun spread wider than
 #: ``SINGLE_SPREAD`` is merged into lights of at most ``CLUSTER_WIDTH`` rad instead
