@@ -115,11 +115,20 @@ def test_a_wide_probe_is_recovered(tmp_path, wide_probe, name):
     # opaque lobes are lit from its first level at most envlight.LIGHT_WIDTH wide
     # (before that, lit from the map itself, env_phong's e came out 4 % low at 7.8
     # stated errors, and a fit took 3.9 GB).
+    _recovered_under(tmp_path, name, wide_probe)
+
+
+def _recovered_under(tmp_path, name, probe, size=None):
+    """The shipped case ``name`` under the envmap ``probe`` (at ``size``: film width,
+    supersampling), rendered by Mitsuba from the whole map (4096 spp), fitted, and each
+    free parameter within its tolerance and ``STATED_COVERS`` stated errors."""
     from fitter.mitsuba.synth import write_case
     from fitter.pipeline import truth_params
 
     spec = json.loads(json.dumps(CASES[name]))
-    spec["scene"]["environment"]["file"] = wide_probe
+    spec["scene"]["environment"]["file"] = probe
+    if size:
+        spec["scene"].update(width=size[0], height=size[0], supersampling=size[1])
     job = config.job_from_dict({"scene": spec["scene"], "material": spec["material"]},
                                base_dir=str(tmp_path))
     truth = truth_params(job)
@@ -156,25 +165,9 @@ def test_bright_sources_unlike_the_probe_sun_are_recovered(tmp_path, case, sourc
     # Before the sun's texel cap counted solid angle (envlight._row_shares) half the
     # zenith sun stayed in the sky stencil: env_plastic's rho_d 0.017 low at 4.8. (A
     # sharp lobe under it needs a Mitsuba target of ~250 k spp: benchmarks/README.md.)
-    from fitter.mitsuba.synth import PROBE_SUN, make_probe, write_case
-    from fitter.pipeline import truth_params
+    from fitter.mitsuba.synth import PROBE_SUN, make_probe
 
     probe = str(tmp_path / "probe.exr")
     make_probe(probe, suns=tuple((PROBE_SUN[0] if d == "probe" else d, diam, ratio)
                                  for d, diam, ratio in BRIGHT_SOURCES[sources]))
-    spec = json.loads(json.dumps(CASES[case]))
-    spec["scene"].update(width=size[0], height=size[0], supersampling=size[1])
-    spec["scene"]["environment"]["file"] = probe
-    job = config.job_from_dict({"scene": spec["scene"], "material": spec["material"]},
-                               base_dir=str(tmp_path))
-    truth = truth_params(job)
-    write_case(str(tmp_path / "case"), job.scene, job.material, truth, spp=4096, seed=0)
-    target = read_image(str(tmp_path / "case" / "target.exr"))
-    res = fitter.fit(target, job.scene, job.material, fixed=job.fixed)
-    assert res.status == "converged", res.message
-    for key in res.free:
-        abs_tol, rel_tol = TOLERANCES[key.split(".", 1)[1]]
-        want, got = np.asarray(truth[key]), np.asarray(res.params[key])
-        assert np.all(np.abs(got - want) <= abs_tol + rel_tol * np.abs(want)), (key, got, want)
-        assert np.all(np.abs(got - want) <= STATED_COVERS * np.asarray(res.stderr[key])), (
-            key, got, want, res.stderr[key])
+    _recovered_under(tmp_path, case, probe, size)

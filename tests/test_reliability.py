@@ -292,12 +292,12 @@ def test_a_large_bright_source_counts_in_the_memory_estimate(tmp_path, monkeypat
     import numpy as np
 
     import fitter
+    from fitter.envlight import uv_to_dir
     from fitter.imageio import write_image
 
     h, w = 32, 64  # a lat-long map: a dim sky and a bright disc 40 deg wide
-    v, u = np.mgrid[0:h, 0:w] + 0.5
-    theta, phi = np.pi * v / h, 2 * np.pi * u / w
-    d = np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)], -1)
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    d = uv_to_dir((u + 0.5) / w, v / (h - 1))  # each texel's direction
     disc = d @ np.array([0.0, 0.6, 0.8]) > np.cos(np.radians(20.0))
     sky = np.where(disc[..., None], 300.0, 0.5) * np.ones(3)
     write_image(str(tmp_path / "studio.exr"), sky.astype(np.float32))

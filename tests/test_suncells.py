@@ -24,26 +24,24 @@ def _unit(a):
     return a / np.linalg.norm(a, axis=-1, keepdims=True)
 
 
-def _disc(centre, diameter_deg, n, rng):
-    """``n`` cell directions uniform on a cap of that diameter about ``centre``."""
-    c = np.cos(np.radians(diameter_deg / 2))
-    z = rng.uniform(c, 1.0, n)
-    phi = rng.uniform(0.0, 2 * np.pi, n)
-    r = np.sqrt(1.0 - z * z)
+def _around(centre, angle, phi):
+    """Unit directions at ``angle`` (rad) from ``centre``, at azimuths ``phi`` about it."""
     t1 = _unit(np.cross([1.0, 0.0, 0.0], centre))
     t2 = np.cross(centre, t1)
-    return _unit(r[:, None] * (np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2)
-                 + z[:, None] * centre)
+    return _unit(np.sin(angle)[:, None] * (np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2)
+                 + np.cos(angle)[:, None] * centre)
+
+
+def _disc(centre, diameter_deg, n, rng):
+    """``n`` cell directions uniform on a cap of that diameter about ``centre``."""
+    z = rng.uniform(np.cos(np.radians(diameter_deg / 2)), 1.0, n)
+    return _around(centre, np.arccos(z), rng.uniform(0.0, 2 * np.pi, n))
 
 
 def _far_normals(centre, rng, n=200):
     """Normals 40-80 deg from the sun's centre: far from its horizon."""
-    ang = np.radians(rng.uniform(40.0, 80.0, n))
-    phi = rng.uniform(0.0, 2 * np.pi, n)
-    t1 = _unit(np.cross([1.0, 0.0, 0.0], centre))
-    t2 = np.cross(centre, t1)
-    return _unit(np.sin(ang)[:, None] * (np.cos(phi)[:, None] * t1 + np.sin(phi)[:, None] * t2)
-                 + np.cos(ang)[:, None] * centre)
+    return _around(centre, np.radians(rng.uniform(40.0, 80.0, n)),
+                   rng.uniform(0.0, 2 * np.pi, n))
 
 
 def _irradiance(normals, dirs, irr):
