@@ -133,8 +133,8 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
             data.sphere, material=spec.material, env_type=spec.env_type))
     sd_stat, sd_sys, sd_disc, hac = sd, np.zeros_like(sd), np.zeros_like(sd), None
     if np.all(np.isfinite(cov_z)) and np.any(sd > 0):
-        sd, sd_sys, sd_disc, hac = _with_systematic(problem, spec, data, z, cov_z, sd,
-                                                    params, model, J)
+        sd, sd_stat, sd_sys, sd_disc, hac = _with_systematic(problem, spec, data, z, cov_z,
+                                                             params, model, J)
     stderr, stderr_stat, stderr_sys, stderr_disc, coords = {}, {}, {}, {}, []
     for blk, sl in spec.slices():
         if blk.key not in unidentifiable:  # marked ambiguous: no error to give
@@ -194,7 +194,8 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
     total = time.perf_counter() - t_start
     res = FitResult(
         params={k: (np.asarray(params[k]) if np.size(params[k]) > 1 else float(params[k]))
-                for k in spec.material.param_specs()}, stderr=stderr, free=[blk.key for blk in spec.blocks],
+                for k in spec.material.param_specs()}, stderr=stderr,
+        free=[blk.key for blk in spec.blocks],
         unidentifiable=unidentifiable, correlation=corr, coordinates=coords, status=status,
         message=message, iterations=iters, cost=cost, image_rmse=rmse,
         n_pixels=int(problem.rows.size),
@@ -215,12 +216,14 @@ def _fitted_pixels(problem: Problem, data: Data) -> np.ndarray:
         problem.renderer.pixel_index)[problem.rows])
 
 
-def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_stat, params,
-                     model, R):
-    """(stderr total, systematic, of which discretisation (each (n,)), block info).
+def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, params, model, R):
+    """(stderr total, statistical, systematic, of which discretisation (each (n,)),
+    block info), from the Gauss-Newton covariance ``cov_stat``.
 
-    Systematic = the significant excess of the spatial-block sandwich
-    (``_adequacy``) over the statistical covariance, plus the outer product
+    Statistical = ``cov_stat`` plus what noise varying over the pixels adds
+    (``_adequacy.heteroscedastic``: shot noise). Systematic = the significant
+    excess of the spatial-block sandwich (``_adequacy``) over the statistical
+    covariance, plus the outer product
     of the parameter shift the model's own discretisation error implies
     (``_discretisation``: the fitted parameters rendered k vs 2k, the
     difference taken through the linearisation). The parts add in quadrature.
@@ -233,6 +236,10 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     ids, n_blocks = data.geometry.kept("blocks", lambda: _adequacy.block_ids(
         pix, problem.renderer.scene.width))
     cov_hac = _adequacy.sandwich(Js, r, ids, n_blocks, gram)
+    # Noise varying over the pixels (shot noise) is statistical; the blocks add what
+    # spatially structured residuals do beyond it.
+    cov_stat = cov_stat + _adequacy.heteroscedastic(cov_stat, Js, r, len(pix), gram)
+    sd_stat = intervals(spec, z, cov_stat)[0]
     cov_sys = _adequacy.systematic(cov_stat, cov_hac, n_blocks)
     info = {"n_blocks": int(n_blocks),
             "hac_over_stat_max": float(np.sqrt(np.max(
@@ -277,7 +284,7 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, sd_s
     sd_tot = intervals(spec, z, cov_stat + cov_sys + cov_disc)[0]
     sd_sys = np.sqrt(np.maximum(sd_tot**2 - sd_stat**2, 0.0))
     sd_d = np.sqrt(np.maximum(intervals(spec, z, cov_stat + cov_disc)[0] ** 2 - sd_stat**2, 0.0))
-    return sd_tot, sd_sys, np.minimum(sd_d, sd_sys), info
+    return sd_tot, sd_stat, sd_sys, np.minimum(sd_d, sd_sys), info
 
 
 def all_held(problem: Problem, b: int, t_compile: float, t_run: float) -> FitResult:

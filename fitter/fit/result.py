@@ -23,7 +23,10 @@ class FitResult:
             through the parameter transform and clipped to the box (the delta
             method when small; see ``fitter.fit._covariance.covariance``).
         stderr_stat: the statistical part alone: the Gauss-Newton covariance
-            s^2 (J^T J)^-1 (the Cramer-Rao bound for white pixel noise).
+            s^2 (J^T J)^-1 (the Cramer-Rao bound for white pixel noise of one
+            level), or, where the residual's scatter differs from pixel to
+            pixel beyond chance (shot noise at a bright highlight), the pixel
+            sandwich (``fitter.fit._adequacy.heteroscedastic``).
         stderr_sys: the systematic part, sqrt(stderr^2 - stderr_stat^2): what
             spatially structured residuals (a model that cannot follow the
             image, its discretisation) add, from a spatial-block sandwich
