@@ -147,13 +147,12 @@ def heteroscedastic(cov_stat, J, r, pixels: int, gram=None):
     highlight's peak pixel carried 0.47 of a parameter, its residual that much
     below its noise (with (I - H_pp)^-1/2 instead, Bell and McCaffrey's, 1 of
     12 bright_phong draws kept e 3.2 stated errors off). Per coordinate j the
-    excess counts where V_pix / V_stat >
-    1 + SYS_SIGNIFICANCE sqrt(2 / N_j): for white noise of one level V_pix
-    scatters about V_stat with relative deviation sqrt(2 / N_j), N_j = (sum_p
-    w_pj)^2 / sum_p w_pj^2 the effective number of pixels behind coordinate j
-    (w_pj pixel p's share of V_stat). Correlations follow V_pix. ``J`` (N, n)
-    and ``r`` (N,) as ``sandwich`` takes them, N // ``pixels`` rows a pixel;
-    ``gram``: J^T J.
+    excess counts where V_pix / V_stat > 1 + SYS_SIGNIFICANCE sqrt(2 / N_j):
+    for white noise of one level V_pix scatters about V_stat with relative
+    deviation sqrt(2 / N_j), N_j = (sum_p w_pj)^2 / sum_p w_pj^2 the effective
+    number of pixels behind coordinate j (w_pj pixel p's share of V_stat).
+    Correlations follow V_pix. ``J`` (N, n) and ``r`` (N,) as ``sandwich``
+    takes them, N // ``pixels`` rows a pixel; ``gram``: J^T J.
 
     A model error that differs from pixel to pixel (a sharp lobe's sub-pixel
     quadrature) is counted here too: a residual cannot tell it from noise.
@@ -164,31 +163,35 @@ def heteroscedastic(cov_stat, J, r, pixels: int, gram=None):
     regression model".
     """
     J = np.asarray(J, dtype=np.float64)
-    n, per = J.shape[1], J.shape[0] // pixels
+    n, per = J.shape[1], J.shape[0] // max(pixels, 1)
     bread = np.linalg.pinv(J.T @ J if gram is None else gram, hermitian=True)
-    jb = (J @ bread).reshape(pixels, per, n)
-    jp = J.reshape(pixels, per, n)
-    rp = np.asarray(r, dtype=np.float64).reshape(pixels, per)
-    lev = np.einsum("pcn,pcn->p", jb, jp)  # the trace of H_pp
-    big = np.nonzero(lev > LEVERAGE)[0]
-    if big.size:  # (I - H_pp)^-1 r_p by each such pixel's eigenvectors (H_pp's <= 1)
-        lam, u = np.linalg.eigh(np.einsum("pcn,pdn->pcd", jb[big], jp[big]))
-        inv = 1.0 / np.maximum(1.0 - lam, 1e-12)
-        rp = rp.copy()
-        rp[big] = np.einsum("pcj,pj,pdj,pd->pc", u, inv, u, rp[big])
-    g = np.einsum("pcn,pc->pn", jp, rp)
-    cov_pix = bread @ (g.T @ g) @ bread
-    if not np.any(np.diag(cov_pix) > np.diag(cov_stat)):  # (no excess to test: 0.7 ms)
-        return np.zeros_like(cov_pix)
-    w = np.einsum("pcn,pcn->pn", jb, jb)
-    n_eff = np.sum(w, 0) ** 2 / np.maximum(np.sum(w * w, 0), 1e-300)
-    return _excess(cov_stat, cov_pix,
+    r = np.asarray(r, dtype=np.float64)
+    meat, w1, w2 = np.zeros((n, n)), np.zeros(n), np.zeros(n)
+    for p0 in range(0, pixels, CHUNK):  # (no (N, n) temporaries: J alone is 0.2 GB at 1024^2)
+        jp = J[p0 * per:(p0 + CHUNK) * per].reshape(-1, per, n)
+        jb = (jp.reshape(-1, n) @ bread).reshape(jp.shape)
+        rp = r[p0 * per:(p0 + CHUNK) * per].reshape(-1, per)
+        big = np.nonzero(np.einsum("pcn,pcn->p", jb, jp) > LEVERAGE)[0]  # trace of H_pp
+        if big.size:  # (I - H_pp)^-1 r_p by each such pixel's eigenvectors (H_pp's <= 1)
+            lam, u = np.linalg.eigh(np.einsum("pcn,pdn->pcd", jb[big], jp[big]))
+            inv = 1.0 / np.maximum(1.0 - lam, 1e-12)
+            rp = rp.copy()
+            rp[big] = np.einsum("pcj,pj,pdj,pd->pc", u, inv, u, rp[big])
+        g = np.einsum("pcn,pc->pn", jp, rp)
+        meat += g.T @ g
+        w = np.einsum("pcn,pcn->pn", jb, jb)
+        w1 += w.sum(0)
+        w2 += np.einsum("pn,pn->n", w, w)
+    n_eff = w1**2 / np.maximum(w2, 1e-300)
+    return _excess(cov_stat, bread @ meat @ bread,
                    1.0 + SYS_SIGNIFICANCE * np.sqrt(2.0 / np.maximum(n_eff, 1.0)))
 
 
 #: ``heteroscedastic`` corrects the residuals of pixels of more leverage than this
 #: (the trace of H_pp) only: the others' variance is understated by under 2 %.
 LEVERAGE = 0.01
+#: ``heteroscedastic`` takes this many pixels at a time.
+CHUNK = 1 << 16
 
 
 def _excess(cov_base, cov_robust, thresh):

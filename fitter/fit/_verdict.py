@@ -223,10 +223,10 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
     Statistical = ``cov_stat`` plus what noise varying over the pixels adds
     (``_adequacy.heteroscedastic``: shot noise). Systematic = the significant
     excess of the spatial-block sandwich (``_adequacy``) over the statistical
-    covariance, plus the outer product
-    of the parameter shift the model's own discretisation error implies
-    (``_discretisation``: the fitted parameters rendered k vs 2k, the
-    difference taken through the linearisation). The parts add in quadrature.
+    covariance, plus the outer product of the parameter shift the model's own
+    discretisation error implies (``_discretisation``: the fitted parameters
+    rendered k vs 2k, the difference taken through the linearisation). The
+    parts add in quadrature.
     """
     J, r, _ = jac_full(spec, z, data)
     Js = scaled_jacobian(spec, z, J)
