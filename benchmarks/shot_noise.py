@@ -35,13 +35,14 @@ import fitter  # noqa: E402
 from fitter import serialize  # noqa: E402
 from fitter.cases import CASES  # noqa: E402
 
-#: Practical tolerances (the product's accuracy targets): absolute, or relative ("%").
-TOLERANCE = {"rho": 0.005, "sigma": 0.02, "m": ("%", 0.02), "e": ("%", 0.03), "eta": 0.005}
+#: Practical tolerances (the product's accuracy targets) by parameter name: absolute,
+#: or relative ("%").
+TOLERANCE = {"rho_d": 0.005, "rho_s": 0.005, "rho_m": 0.005, "sigma": 0.02, "m": ("%", 0.02),
+             "e": ("%", 0.03), "eta": 0.005}
 
 
 def _beyond(key: str, err, truth) -> np.ndarray:
-    name = key.split(".")[-1]
-    tol = next((v for k, v in TOLERANCE.items() if name.startswith(k)), None)
+    tol = TOLERANCE.get(key.split(".")[-1])
     if tol is None:
         return np.zeros(np.shape(err), bool)
     if isinstance(tol, tuple):
