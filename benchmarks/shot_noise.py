@@ -30,24 +30,18 @@ sys.path.insert(0, HERE)
 sys.path.insert(0, os.path.dirname(HERE))
 
 from _machine import host  # noqa: E402
+from honesty import TOL  # noqa: E402 (the practical tolerances, issue 12)
 
 import fitter  # noqa: E402
 from fitter import serialize  # noqa: E402
 from fitter.cases import CASES  # noqa: E402
 
-#: Practical tolerances (the product's accuracy targets) by parameter name: absolute,
-#: or relative ("%").
-TOLERANCE = {"rho_d": 0.005, "rho_s": 0.005, "rho_m": 0.005, "sigma": 0.02, "m": ("%", 0.02),
-             "e": ("%", 0.03), "eta": 0.005}
-
-
 def _beyond(key: str, err, truth) -> np.ndarray:
-    tol = TOLERANCE.get(key.split(".")[-1])
-    if tol is None:
+    """Where ``err`` is beyond the practical tolerance of ``key`` (``honesty.TOL``)."""
+    if key.split(".")[-1] not in TOL:
         return np.zeros(np.shape(err), bool)
-    if isinstance(tol, tuple):
-        return np.abs(err) > tol[1] * np.abs(truth)
-    return np.abs(err) > tol
+    a, rel = TOL[key.split(".")[-1]]
+    return np.abs(err) > a + rel * np.abs(truth)
 
 
 def main(argv=None) -> int:

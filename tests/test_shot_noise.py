@@ -15,6 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 import fitter
+from fitter import serialize
+from fitter.cases import CASES
 from fitter.fit import _adequacy
 
 #: Poisson-Gaussian noise: photons = value / GAIN, read noise READ (standard deviation).
@@ -32,24 +34,22 @@ MAX_Z = 4.0
 #: sampling error.
 SANDWICH_RANGE = (0.95, 1.35)
 
-SCENE = fitter.Scene(width=96, height=96, supersampling=4, lights=(
-    fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),
-    fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0))))
-#: bright_phong's lobe: a peak of ~4.6 on a black body.
-TRUTH = {"phong.rho_s": np.array([4.0, 4.0, 4.0]), "phong.e": 300.0}
-
-
 def test_stated_errors_cover_shot_noise_at_a_bright_highlight():
-    clean = np.asarray(fitter.render(TRUTH, SCENE, "phong"))
+    """The shipped bright_phong case (Phong rho_s = 4, e = 300: a peak of ~4.6 on a
+    black body), its truth rendered by the model, under Poisson-Gaussian noise."""
+    scene = serialize.scene_from_dict(CASES["bright_phong"]["scene"], "bright_phong")
+    material, truth = serialize.material_from_dict(CASES["bright_phong"]["material"],
+                                                   "bright_phong")[:2]
+    clean = np.asarray(fitter.render(material.full_params(truth), scene, material))
     rng = np.random.default_rng(7)
-    z = {k: [] for k in TRUTH}
+    z = {k: [] for k in truth}
     for _ in range(N_DRAWS):
         target = rng.poisson(clean / GAIN) * GAIN + rng.normal(0.0, READ, clean.shape)
-        r = fitter.fit(target, SCENE, "phong")
+        r = fitter.fit(target, scene, material)
         assert r.status == "converged", r.message
         # shot noise is white: no spatial structure to warn of
         assert not any("spatially structured" in w for w in r.warnings), r.warnings
-        for k, t in TRUTH.items():
+        for k, t in truth.items():
             z[k].append((np.asarray(r.params[k]) - t) / np.asarray(r.stderr[k]))
     for k, zk in z.items():
         zk = np.array(zk)
