@@ -151,6 +151,8 @@ def fit_badge(res) -> tuple[str, str]:
     (its stated errors mostly systematic) is amber."""
     if "cannot explain the image" in res.message:
         return f"MODEL CANNOT EXPLAIN THE IMAGE ({res.status})", BAD
+    if "likely a clipped highlight" in res.message:
+        return f"TARGET LOOKS CLIPPED ({res.status})", BAD
     if not res.converged:
         return f"NOT CONVERGED ({res.status})", BAD
     if any(w.startswith("the residual is spatially structured") for w in res.warnings):

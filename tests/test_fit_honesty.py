@@ -26,6 +26,8 @@ LIGHTS = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),)
 SCENE = fitter.Scene(width=48, height=48, supersampling=2, lights=LIGHTS)
 GLOSSY = {"lambert.rho_d": [0.6, 0.4, 0.2], "torrance_sparrow.m": 0.15,
           "torrance_sparrow.eta": 1.5}
+#: A fit of the model's own render (no noise, no model error) recovers its truth to this.
+INVERSE_CRIME_RTOL = 1e-6
 
 
 def test_sandwich_equals_gauss_newton_for_white_residuals_and_grows_with_structure():
@@ -108,6 +110,45 @@ def test_wrong_model_with_agreeing_starts_blames_the_model():
     assert r.status == "failed" and "poor fit" in r.message
     assert "not the start" in r.message and "cannot explain the image at the" in r.message
     assert fit_badge(r)[0].startswith("MODEL CANNOT EXPLAIN")
+
+
+def test_clipped_highlight_is_named_and_its_saturation_level_recovers_the_truth():
+    """A target whose highlight is clipped flat (a camera's white level) at 0.8 of
+    its peak: a poor fit whose cause names the clipping and a saturation level;
+    fitted again with it the truth the target was rendered with comes back
+    (inverse crime: no model error), as with the exact level."""
+    target = np.asarray(fitter.render(GLOSSY, SCENE))
+    level = 0.8 * target.max()
+    clipped = np.minimum(target, level)
+    r = fitter.fit(clipped, SCENE, "lambert+torrance_sparrow")
+    assert r.status == "failed" and "likely a clipped highlight" in r.message, r.message
+    assert fit_badge(r)[0].startswith("TARGET LOOKS CLIPPED")
+    named = float(r.message.split("saturation = ")[1].split(" ")[0])
+    assert level * (1 - 1e-5) <= named <= level  # drops the flat top, six digits
+    again = fitter.fit(clipped, SCENE, "lambert+torrance_sparrow", saturation=named)
+    assert again.status == "converged", again.message
+    for key, want in GLOSSY.items():
+        np.testing.assert_allclose(again.params[key], want, rtol=INVERSE_CRIME_RTOL)
+
+
+def test_clipped_counts_a_flat_top_only():
+    """``_adequacy.clipped``: a channel's maximum shared by CLIPPED_PIXELS fitted
+    pixels where the fit is above it; not fewer, not where the fit is below, not
+    a black target, not a pixel left out."""
+    rng = np.random.default_rng(5)
+    target = rng.random((50, 3))
+    model = target + 0.01
+    used = np.ones((50, 3), bool)
+    assert _adequacy.clipped(target, model, used) is None  # distinct values
+    n = _adequacy.CLIPPED_PIXELS
+    target[:n, 1], model[:n, 1] = 2.0, 2.5
+    assert _adequacy.clipped(target, model, used) == (n, 2.0)
+    model[0, 1] = 1.0  # the fit below the top at one of them
+    assert _adequacy.clipped(target, model, used) is None
+    model[0, 1] = 3.0
+    used[1, 1] = False  # one of them left out: the top is the other n - 1
+    assert _adequacy.clipped(target, model, used) is None
+    assert _adequacy.clipped(np.zeros((50, 3)), np.ones((50, 3)), np.ones((50, 3), bool)) is None
 
 
 def test_exposure_scale_is_named():

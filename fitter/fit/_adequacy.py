@@ -323,11 +323,47 @@ def scale_share(err, model, used) -> tuple[float, float]:
     return c, c * c * mm / ee
 
 
-def cause(err, model, used, adequacy: dict, starts: list) -> str:
-    """The likely cause of a poor fit, in words: light/exposure scale, the
-    start, or the model (and where the residual sits)."""
+#: Fitted pixels at a plateau of a target channel's maximum, with the fit above it,
+#: that make a poor fit's cause a clipped highlight: no lobe renders a flat top, and
+#: rendered or noisy radiance repeats its maximum by chance only (float32 EXR values
+#: are 2^-24 apart). Measured on the quickstart's target clipped at 0.9 of its peak:
+#: 76 pixels, a poor fit (17 times the noise) said to be "likely the model".
+CLIPPED_PIXELS = 4
+
+
+def clipped(target, model, used) -> tuple[int, float] | None:
+    """(pixels, level): the fitted pixels whose value in some channel equals that
+    channel's largest fitted value (> 0) while the fit is above it, and the
+    lowest such level; None where no channel has ``CLIPPED_PIXELS`` of them.
+    ``target``, ``model``, ``used``: (P, 3)."""
+    t = np.asarray(target, dtype=np.float64)
+    top = np.max(np.where(used, t, -np.inf), axis=0)  # (3,)
+    at = used & (t == top) & (np.asarray(model) > t) & (top > 0)
+    plateau = at.sum(axis=0) >= CLIPPED_PIXELS
+    if not plateau.any():
+        return None
+    return int(at[:, plateau].any(axis=1).sum()), float(top[plateau].min())
+
+
+def _below(level: float) -> float:
+    """``level`` to six significant digits, rounded down (a ``saturation`` that
+    drops the pixels at ``level``)."""
+    step = 10.0 ** (np.floor(np.log10(level)) - 5)
+    return float(np.floor(level / step) * step)
+
+
+def cause(err, model, used, adequacy: dict, starts: list, target=None) -> str:
+    """The likely cause of a poor fit, in words: light/exposure scale, a clipped
+    highlight (``clipped``: ``target`` (P, 3) given), the start, or the model
+    (and where the residual sits)."""
     c, share = scale_share(err, model, used)
     loc = where(adequacy)
+    flat = clipped(target, model, used) if target is not None else None
+    if flat is not None and share <= SCALE_SHARE:
+        return (f"likely a clipped highlight: {flat[0]} fitted pixels share a channel's "
+                f"largest value ({flat[1]:.6g}), a flat top the fit rises above (residual "
+                f"{loc}); leave them out with saturation = {_below(flat[1]):.6g} "
+                "(fit.saturation in a config)")
     if share > SCALE_SHARE:
         return (f"likely an exposure or light scale: the target is {1 - c:.4g} times the "
                 f"fitted image ({100 * share:.0f} % of the residual is that uniform scale); "

@@ -183,7 +183,8 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
                 verdict += f" (and the solver stopped after {problem.static['max_steps']} steps)"
             status, message, failing = "failed", verdict, True
     if failing:
-        message = f"{message}: {_adequacy.cause(err, model, used, adequacy, starts)}"
+        message = f"{message}: " + _adequacy.cause(err, model, used, adequacy, starts,
+                                                   np.asarray(data.target))
     sys_ratio = np.max(sd_sys / np.maximum(sd_stat, 1e-300)) if sd.size else 0.0
     # (A residual of rounding alone, far below the noise, is structured but says nothing.)
     if (status == "converged" and sys_ratio > _adequacy.SYS_WARN
