@@ -292,3 +292,19 @@ def test_the_embedded_cluster_workers_do_not_pause_at_their_memory_limit():
     with _client(None, 1, _entries([0.1])) as client:
         assert list(client.run(lambda: __import__("dask").config.get(
             "distributed.worker.memory.pause")).values()) == [False]
+
+
+def test_progress_line_counts_jobs_in_the_summary_words():
+    """The live progress line counts each job under its summary.csv status (a fit
+    that failed is "failed", a job that could not run "error"), as the final
+    summary line does; before, a failed fit showed as "not converged" and an
+    error as "failed"."""
+    from fitter.batch._engine import COLOURS, _Progress
+    from fitter.batch._task import STATUSES
+
+    assert set(COLOURS) == set(STATUSES)
+    with _Progress(True, 4) as bar:
+        bar.update({"converged": 2, "max_steps": 0, "failed": 1, "error": 1}, 0)
+        text = bar.bar.tasks[0].fields["counts"]
+    assert "2 converged" in text and "1 failed" in text and "1 error" in text, text
+    assert "max_steps" not in text and "not converged" not in text

@@ -11,6 +11,7 @@ import os
 
 from ._engine import run_batch
 from ._jobs import BatchError, expand_configs
+from ._task import STATUSES
 
 EXIT_OK, EXIT_SOME_FAILED = 0, 3
 
@@ -34,8 +35,7 @@ def command(args) -> int:
     if not args.quiet:
         from rich.console import Console
 
-        parts = [f"{status.count(s)} {s}" for s in ("converged", "max_steps", "failed", "error")
-                 if status.count(s)]
+        parts = [f"{status.count(s)} {s}" for s in STATUSES if status.count(s)]
         resumed = sum(bool(r["resumed"]) for r in rows)
         Console(stderr=True, highlight=False).print(
             f"{len(rows)} job(s): {', '.join(parts)}"

@@ -20,9 +20,11 @@ from typing import Any, Iterable, Sequence
 
 from ._jobs import BatchError, Entry, _one_line, finished, make_entries
 from ._table import write_csv, write_figure
-from ._task import TOPIC, error_row, result_row, run_entry
+from ._task import STATUSES, TOPIC, error_row, result_row, run_entry
 
 #: Seconds to wait for an existing scheduler to answer, and for it to have a worker.
+#: The progress line's colour of each job status (``_task.STATUSES``).
+COLOURS = {"converged": "green", "max_steps": "yellow", "failed": "yellow", "error": "red"}
 CONNECT_TIMEOUT_S = 5
 WORKER_WAIT_S = 30
 
@@ -263,7 +265,7 @@ def _run(client, todo: Sequence[Entry], root: str | None, progress: bool):
     client.subscribe_topic(topic, lambda event: started.add(event[1]["start"]))
     futures = {client.submit(run_entry, e, root, topic, pure=False,
                              key=f"fitter-{batch}-{e.index}-{e.name}"): e for e in todo}
-    counts = {"converged": 0, "not converged": 0, "error": 0}
+    counts = dict.fromkeys(STATUSES, 0)
     ended: set[int] = set()
     queue = as_completed(list(futures))
     try:
@@ -274,9 +276,7 @@ def _run(client, todo: Sequence[Entry], root: str | None, progress: bool):
                     row = _row_of(fut, e)
                     fut.release()
                     ended.add(e.index)
-                    status = row["status"]
-                    counts["converged" if status == "converged" else
-                           "error" if status == "error" else "not converged"] += 1
+                    counts[row["status"]] += 1
                     yield e, row
                 bar.update(counts, len(started - ended))
                 time.sleep(0.1)
@@ -301,7 +301,7 @@ def _row_of(fut, e: Entry) -> dict[str, Any]:
 
 
 class _Progress:
-    """A rich progress bar on stderr: jobs done, not converged, failed, running."""
+    """A rich progress bar on stderr: jobs done, by status (``STATUSES``), running."""
 
     def __init__(self, enabled: bool, total: int):
         self.enabled, self.total = enabled, total
@@ -321,9 +321,9 @@ class _Progress:
 
     def update(self, counts: dict[str, int], running: int) -> None:
         if self.enabled:
-            text = (f"[green]{counts['converged']} converged[/] "
-                    f"[yellow]{counts['not converged']} not converged[/] "
-                    f"[red]{counts['error']} failed[/] {running} running")
+            # The words of the summary line and summary.csv's status column.
+            text = " ".join(f"[{COLOURS[s]}]{counts[s]} {s}[/]" for s in STATUSES
+                            if counts[s] or s == "converged") + f" {running} running"
             self.bar.update(self.task, completed=sum(counts.values()), counts=text)
 
     def __exit__(self, *exc):
