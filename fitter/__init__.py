@@ -38,9 +38,14 @@ _LAZY = {
 }
 
 __all__ = sorted(_LAZY) + ["__version__"]
+#: Subpackages and modules the documentation reaches as ``fitter.<name>`` (e.g.
+#: ``fitter.mitsuba.render``), imported on first use like the names above.
+_SUBMODULES = ("batch", "compilation_cache", "config", "imageio", "metrics", "mitsuba")
 
 
 def __getattr__(name):
+    if name in _SUBMODULES:
+        return _importlib.import_module(f".{name}", __name__)  # (the import binds it)
     try:
         module, attr = _LAZY[name]
     except KeyError:
@@ -52,4 +57,4 @@ def __getattr__(name):
 
 
 def __dir__():
-    return __all__
+    return __all__ + list(_SUBMODULES)

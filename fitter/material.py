@@ -98,6 +98,23 @@ class Material:
         """This material with the ``exposure`` parameter (itself if it has it)."""
         return self if self.exposure else dataclasses.replace(self, exposure=True)
 
+    @classmethod
+    def given(cls, material, values: Mapping[str, Any]) -> "Material":
+        """``material`` (a ``Material``, a lobe list or a ``"lambert+phong"``
+        string; None: the lobes the keys of ``values`` name, ``from_params``)
+        with the option values ``values`` holds (``"torrance_sparrow.geometry":
+        "smith"``) in place of its own, and the exposure where ``values`` has
+        one: how ``render`` and ``fit`` (its init and fixed) read a lobe string
+        beside parameters that name options."""
+        if material is None:
+            return cls.from_params(values)
+        material = material if isinstance(material, Material) else cls.make(material)
+        options = {k: v for k, v in values.items() if k in material.option_keys()}
+        if options:
+            material = cls.make(material.lobes, {**dict(material.options), **options},
+                                exposure=material.exposure)
+        return material.with_exposure() if EXPOSURE_KEY in values else material
+
     @property
     def lobe_objects(self) -> tuple[Lobe, ...]:
         return tuple(LOBES[n] for n in self.lobes)

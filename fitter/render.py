@@ -415,12 +415,7 @@ def render(params: Mapping[str, Any], scene: Scene, material: Material | None = 
                             + checks.show(params))
     if not isinstance(scene, Scene):
         raise SceneError(f"scene: expected a fitter.Scene, got {checks.show(scene)}")
-    if material is None:
-        material = Material.from_params(params)
-    elif not isinstance(material, Material):
-        material = Material.make(material)
-    if EXPOSURE_KEY in params:
-        material = material.with_exposure()
+    material = Material.given(material, params)
     check_scene("render", scene, material, base_dir=base_dir)
     numeric = {k: v for k, v in params.items() if k not in material.option_keys()}
     base_dir = os.path.abspath(base_dir) if base_dir else None

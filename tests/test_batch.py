@@ -308,3 +308,23 @@ def test_progress_line_counts_jobs_in_the_summary_words():
         text = bar.bar.tasks[0].fields["counts"]
     assert "2 converged" in text and "1 failed" in text and "1 error" in text, text
     assert "max_steps" not in text and "not converged" not in text
+
+
+def test_run_batch_at_a_scripts_top_level_says_to_guard_it(tmp_path):
+    """A script calling run_batch at its top level (the README's example without the
+    main guard): the embedded cluster's worker processes import it again, and Dask
+    said only "Nanny failed to start"; now a BatchError names the script and the
+    guard."""
+    script = tmp_path / "batch_script.py"
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    config = os.path.join(root, "configs", "lambert.toml")
+    script.write_text("from fitter.batch import run_batch\n"
+                      f"run_batch([{config!r}], workers=1, validate=False)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [root] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])}
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          cwd=tmp_path, env=env, timeout=300)
+    assert proc.returncode != 0
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("fitter.batch._jobs.BatchError: the embedded Dask cluster's"), last
+    assert str(script) in last and 'if __name__ == "__main__":' in last

@@ -344,3 +344,25 @@ def test_envmap_lookup_gradient_is_finite(envmap_file):
     rev = jax.jit(jax.vmap(jax.grad(lambda d: jnp.sum(lookup("envmap", env, d)))))
     grad_r = rev(jnp.asarray(v))
     assert np.all(np.isfinite(np.asarray(grad_r)))
+
+
+def test_option_values_in_params_apply_beside_a_lobe_string():
+    """``fitter.render`` and ``fitter.mitsuba.render`` with a lobe string and an
+    option value among the parameters (``"torrance_sparrow.geometry": "smith"``)
+    render that option, as ``fit`` takes it from init/fixed: the same image as
+    the ``Material`` made with it (reference), not the option's default
+    (``v_groove``), which they silently rendered before."""
+    scene = fitter.Scene(width=16, height=16, supersampling=2,
+                         lights=(fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),))
+    params = {"lambert.rho_d": 0.5, "torrance_sparrow.m": 0.3, "torrance_sparrow.eta": 1.5}
+    smith = {**params, "torrance_sparrow.geometry": "smith"}
+    made = fitter.Material.make("lambert+torrance_sparrow",
+                                {"torrance_sparrow.geometry": "smith"})
+    want = np.asarray(fitter.render(params, scene, made))
+    got = np.asarray(fitter.render(smith, scene, "lambert+torrance_sparrow"))
+    np.testing.assert_array_equal(got, want)
+    assert np.abs(want - np.asarray(fitter.render(params, scene, "lambert+torrance_sparrow"))
+                  ).max() > 1e-6  # the option changes the image
+    mi_want = fitter.mitsuba.render(scene, made, params, spp=4)
+    mi_got = fitter.mitsuba.render(scene, "lambert+torrance_sparrow", smith, spp=4)
+    np.testing.assert_array_equal(mi_got, mi_want)

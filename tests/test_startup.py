@@ -46,3 +46,22 @@ def test_help_usage_and_config_errors_do_not_import_heavy_modules(tmp_path, argv
     assert not loaded, (argv, loaded)
     if argv[-1] == "bad.toml":
         assert "scene.width" in err
+
+
+def test_documented_submodules_are_attributes_of_the_package_on_first_use(tmp_path):
+    """``fitter.mitsuba.render``, ``fitter.metrics.compare``, ``fitter.batch.run_batch``
+    (as the README writes them) after a bare ``import fitter``: AttributeError before;
+    ``import fitter`` alone still loads none of the heavy modules."""
+    code = ("import sys, fitter\n"
+            "heavy = [m for m in %r if m in sys.modules]\n"
+            "print(fitter.mitsuba.render.__module__, fitter.metrics.compare.__name__,\n"
+            "      fitter.batch.run_batch.__name__, fitter.config.load_config.__name__,\n"
+            "      fitter.imageio.read_image.__name__, heavy)\n"
+            "try:\n    fitter.no_such_module\nexcept AttributeError as e:\n    print(e)\n"
+            % (HEAVY,))
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    first, second = proc.stdout.splitlines()
+    assert first == "fitter.mitsuba compare run_batch load_config read_image []", first
+    assert second == "module 'fitter' has no attribute 'no_such_module'"

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import sys
 import time
 import uuid
 from typing import Any, Iterable, Sequence
@@ -23,10 +24,10 @@ from ._table import write_csv, write_figure
 from ._task import STATUSES, TOPIC, error_row, result_row, run_entry
 
 #: Seconds to wait for an existing scheduler to answer, and for it to have a worker.
-#: The progress line's colour of each job status (``_task.STATUSES``).
-COLOURS = {"converged": "green", "max_steps": "yellow", "failed": "yellow", "error": "red"}
 CONNECT_TIMEOUT_S = 5
 WORKER_WAIT_S = 30
+#: The progress line's colour of each job status (``_task.STATUSES``).
+COLOURS = {"converged": "green", "max_steps": "yellow", "failed": "yellow", "error": "red"}
 
 
 def run_batch(jobs: Iterable[Any], out: str | None = None, *, scheduler: str | None = None,
@@ -159,12 +160,28 @@ def _client(scheduler: str | None, workers: int | None, todo: Sequence[Entry]):
     # worker whose RSS stays up after a job (the allocator keeps 80-93 % of a fit's
     # peak, measured) from taking the next; all paused, the batch would wait forever.
     # The nanny's stop at 95 % stays.
-    with dask.config.set({"distributed.worker.memory.pause": False}), LocalCluster(
-            n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+    with dask.config.set({"distributed.worker.memory.pause": False}), _started(
+            LocalCluster, n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
             dashboard_address=None, env=_worker_env(n), memory_limit=memory_limit,
             silence_logs=logging.CRITICAL) as cluster, Client(cluster) as client:
         client.register_plugin(_ignore_interrupt(), name="fitter-ignore-sigint")
         yield client
+
+
+def _started(local_cluster, **kwargs):
+    """``local_cluster(**kwargs)``; a ``BatchError`` saying why where its worker
+    processes cannot start because they import the caller's script again: a
+    script calling ``run_batch`` at its top level starts a cluster in each of
+    them, which multiprocessing refuses (Dask says only "Nanny failed to start")."""
+    try:
+        return local_cluster(**kwargs)
+    except RuntimeError as exc:
+        script = getattr(sys.modules.get("__main__"), "__file__", None)
+        if script is None or "failed to start" not in str(exc):
+            raise
+        raise BatchError(f"the embedded Dask cluster's worker processes did not start: each "
+                         f"imports the script {script} again, so it must call run_batch "
+                         'under `if __name__ == "__main__":`') from None
 
 
 def _local_size(workers: int | None, todo: Sequence[Entry]) -> tuple[int, int | str]:

@@ -238,12 +238,7 @@ class Problem:
             raise FitError(f"target has shape {targets.shape[1:]}, expected "
                            f"{_args.image_shape(scene)}")
         wt = _args.weights_of(weights, scene)
-        options = {k: v for k, v in {**init, **fixed}.items() if k in material.option_keys()}
-        if options:
-            material = Material.make(material.lobes, {**dict(material.options), **options},
-                                     exposure=material.exposure)
-        if EXPOSURE_KEY in init or EXPOSURE_KEY in fixed:
-            material = material.with_exposure()
+        material = Material.given(material, {**init, **fixed})
         opt_keys = material.option_keys()
         numeric_fixed = {k: v for k, v in fixed.items() if k not in opt_keys}
         numeric_init = {k: v for k, v in init.items() if k not in opt_keys}

@@ -21,9 +21,11 @@ from .translate import scene_dict as scene_dict, stratified_spp as stratified_sp
 
 def load_scene(scene, material, params, *, spp=256, seed=0, variant=None, base_dir=None):
     """The loaded ``mi.Scene`` (variant set, plugins registered)."""
+    from ..material import Material
     from . import plugins
     from .variant import load
 
+    material = Material.given(material, params)
     mi, _ = load(variant)
     plugins.register(mi)
     d = scene_dict(scene, material, params, spp=spp, seed=seed, base_dir=base_dir,
@@ -37,7 +39,8 @@ def render(scene, material, params, *, spp: int = 256, seed: int = 0, variant: s
 
     Args:
         scene: a ``fitter.Scene``.
-        material: a ``fitter.Material``.
+        material: a ``fitter.Material``, a lobe list or a ``"lambert+phong"``
+            string (``Material.given``: option values in ``params`` apply).
         params: flat ``{"lobe.param": value}``; missing ones take the defaults.
         spp: samples per pixel (``stratified``: rounded up to a square).
         seed: sampler seed; the same seed, spp and Mitsuba version give the
