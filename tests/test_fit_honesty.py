@@ -151,6 +151,36 @@ def test_clipped_counts_a_flat_top_only():
     assert _adequacy.clipped(np.zeros((50, 3)), np.ones((50, 3)), np.ones((50, 3), bool)) is None
 
 
+def test_a_target_brighter_than_the_box_allows_fails_as_a_poor_fit_naming_it():
+    """A Lambert render 3x brighter than its albedo (0.5, 0.4, 0.3) allows (lights
+    or exposure wrong): the best albedo lies on its bound 1 in two channels.
+    Before, the fit ended "max_steps" (values on the box's edge) with no verdict on
+    the residual, 158 times the noise; now a best fit on the box's edge is judged
+    like a converged one and the cause points at the lights and exposure."""
+    target = 3.0 * np.asarray(fitter.render({"lambert.rho_d": [0.5, 0.4, 0.3]}, SCENE))
+    r = fitter.fit(target, SCENE, "lambert")
+    assert r.status == "failed" and r.message.startswith("poor fit"), r.message
+    assert "at a best fit on the edge of its box (lambert.rho_d" in r.message, r.message
+    assert "likely values beyond the parameters' boxes" in r.message, r.message
+    assert "the lights' intensity and the image's exposure" in r.message
+    np.testing.assert_allclose(r.params["lambert.rho_d"][:2], 1.0, atol=1e-3)
+    assert all(np.all(np.isfinite(v)) for v in r.stderr.values())
+
+
+def test_a_target_far_brighter_than_any_albedo_names_the_lights_and_exposure():
+    """100x brighter: the albedo's logit runs to where its slope underflows to 0,
+    and it is held as unconstrained (``_identify``: a zero column says nothing of
+    a bound), so every parameter is held. The message says so and, as the held
+    values' render is a uniform scale of the target far above the noise, what
+    to check; before, it said only "no parameter is identifiable"."""
+    target = 100.0 * np.asarray(fitter.render({"lambert.rho_d": [0.5, 0.4, 0.3]}, SCENE))
+    r = fitter.fit(target, SCENE, "lambert")
+    assert r.status == "failed" and "no parameter is identifiable" in r.message
+    assert "check the lights' intensity and the image's exposure" in r.message, r.message
+    scale = float(r.message.split("the target ")[1].split(" times")[0])
+    assert 60.0 <= scale <= 100.0  # the render at the held 0.5 against 50, 40, 30
+
+
 def test_exposure_scale_is_named():
     """The diffuse albedo held at its true value, the image 0.7 times darker:
     nothing free can absorb the scale, and the message says so."""

@@ -352,10 +352,12 @@ def _below(level: float) -> float:
     return float(np.floor(level / step) * step)
 
 
-def cause(err, model, used, adequacy: dict, starts: list, target=None) -> str:
+def cause(err, model, used, adequacy: dict, starts: list, target=None,
+          edge: bool = False) -> str:
     """The likely cause of a poor fit, in words: light/exposure scale, a clipped
-    highlight (``clipped``: ``target`` (P, 3) given), the start, or the model
-    (and where the residual sits)."""
+    highlight (``clipped``: ``target`` (P, 3) given), values beyond the boxes
+    (``edge``: the best fit lies on a box's edge), the start, or the model (and
+    where the residual sits)."""
     c, share = scale_share(err, model, used)
     loc = where(adequacy)
     flat = clipped(target, model, used) if target is not None else None
@@ -369,6 +371,11 @@ def cause(err, model, used, adequacy: dict, starts: list, target=None) -> str:
                 f"fitted image ({100 * share:.0f} % of the residual is that uniform scale); "
                 "check the lights' intensity and the image's exposure, or fit it "
                 "(exposure in init, with one lobe parameter fixed as the reference)")
+    if edge:  # (an albedo held at 1 by a target 3 times brighter, per channel)
+        return ("likely values beyond the parameters' boxes: the best fit presses on a box "
+                "edge (above), so the image asks for more than the lobes can give; check the "
+                "lights' intensity and the image's exposure, or fit it (exposure in init, "
+                f"with one lobe parameter fixed as the reference); residual {loc}")
     agree = starts_agree(starts)
     if agree:
         return (f"{len(starts)} starts agree, so it is not the start: the lobes cannot "

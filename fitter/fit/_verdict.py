@@ -44,6 +44,19 @@ MAX_NOISE_RATIO = 10.0
 NOISE_FLOOR = 1e-4
 
 
+def _noise_ratio(problem: Problem, b: int | None, data: Data, rmse, used):
+    """(residual RMSE / the target's noise level, that level, whether it is the
+    floor ``NOISE_FLOOR`` x the mean value, that mean): ``rmse`` (3,) and
+    ``used`` as ``_image_rmse`` gives them; a NaN estimate gives ratio 0."""
+    noise = problem.noise[0 if b is None else b]
+    mean = np.sum(np.abs(np.where(used, np.asarray(data.target), 0.0))) / max(used.sum(), 1)
+    estimate = float(np.sqrt(np.mean(noise**2)))
+    floored = estimate < NOISE_FLOOR * float(mean)  # NaN (no estimate): no check
+    scale = NOISE_FLOOR * float(mean) if floored else estimate
+    ratio = float(np.sqrt(np.mean(rmse**2)) / scale) if scale > 0 else 0.0
+    return ratio, scale, floored, mean
+
+
 def start_status(code: int, z, cost) -> str:
     """``"converged"``, ``"max_steps"`` or ``"failed"`` (a non-finite solution
     fails whatever the solver said)."""
@@ -146,22 +159,23 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
             warnings.append(f"{blk.key} = {format_value(params[blk.key])} is at the bound of "
                             f"[{blk.lower:g}, {blk.upper:g}]; its standard error is half "
                             "a +-1 sigma interval cut by that bound")
+    edge = _near_bound(spec, params, sd) if status == "max_steps" else ""
     if status == "max_steps":  # (its stated errors known: is a value on its box's edge?)
-        message = _out_of_steps(problem.static, _near_bound(spec, params, sd))
+        message = _out_of_steps(problem.static, edge)
     d = np.sqrt(np.maximum(np.diag(cov_z), 1e-300))
     corr = cov_z / np.outer(d, d)
     rmse, used, err = _image_rmse(model, data)
-    noise = problem.noise[0 if b is None else b]
-    mean = np.sum(np.abs(np.where(used, np.asarray(data.target), 0.0))) / max(used.sum(), 1)
-    estimate = float(np.sqrt(np.mean(noise**2)))
-    floored = estimate < NOISE_FLOOR * float(mean)  # NaN (no estimate): no check
-    scale = NOISE_FLOOR * float(mean) if floored else estimate
-    ratio = float(np.sqrt(np.mean(rmse**2)) / scale) if scale > 0 else 0.0
-    if problem.noise_sigma is None and status == "converged" and ratio > MAX_NOISE_RATIO:
+    ratio, scale, floored, mean = _noise_ratio(problem, b, data, rmse, used)
+    # A best fit on its box's edge (out of steps there: more would not move it) is
+    # judged as a converged one: a target far brighter than the lobes render ends there.
+    if (problem.noise_sigma is None and (status == "converged" or edge)
+            and ratio > MAX_NOISE_RATIO):
         status = "failed"
         level = (f"noise level (its floor, {NOISE_FLOOR:g} of the mean value: the target "
                  "looks noise-free)" if floored else "noise level (Immerkaer estimate)")
         message = f"poor fit: the residual RMSE is {ratio:.3g} times the target's {level}"
+        if edge:
+            message += f" at a best fit on the edge of its box ({edge})"
     pix = _fitted_pixels(problem, data)
     adequacy = {
         "noise_ratio": ratio, "noise_floored": bool(floored),
@@ -184,7 +198,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
             status, message, failing = "failed", verdict, True
     if failing:
         message = f"{message}: " + _adequacy.cause(err, model, used, adequacy, starts,
-                                                   np.asarray(data.target))
+                                                   np.asarray(data.target), bool(edge))
     sys_ratio = np.max(sd_sys / np.maximum(sd_stat, 1e-300)) if sd.size else 0.0
     # (A residual of rounding alone, far below the noise, is structured but says nothing.)
     if (status == "converged" and sys_ratio > _adequacy.SYS_WARN
@@ -298,14 +312,23 @@ def all_held(problem: Problem, b: int, t_compile: float, t_run: float) -> FitRes
     weights = np.asarray(data.weights, dtype=np.float64)
     r = np.asarray(robust((model - np.asarray(data.target, dtype=np.float64)) * weights,
                           spec.loss, spec.loss_scale), dtype=np.float64)
-    rmse, used, _ = _image_rmse(model, data)
+    rmse, used, err = _image_rmse(model, data)
+    message = ("no parameter is identifiable from this image: every free parameter is held "
+               "(see warnings)")
+    ratio = _noise_ratio(problem, b, data, rmse, used)[0]
+    c, share = _adequacy.scale_share(err, model, used)
+    # A coordinate run to where its slope underflows is held as unconstrained: a target
+    # far brighter than the lobes render (100x an albedo's) ends so; its render says.
+    if problem.noise_sigma is None and ratio > MAX_NOISE_RATIO and share > _adequacy.SCALE_SHARE:
+        message += (f"; their render leaves a residual {ratio:.3g} times the target's noise "
+                    f"level, the target {1 - c:.4g} times it ({100 * share:.0f} % of the "
+                    "residual is that uniform scale): check the lights' intensity and the "
+                    "image's exposure")
     return FitResult(
         params={k: (np.asarray(v) if np.size(v) > 1 else float(v))
                 for k, v in problem.init_full.items()}, stderr={},
         free=[], unidentifiable=list(problem.unidentifiable), correlation=np.zeros((0, 0)),
-        coordinates=[], status="failed",
-        message="no parameter is identifiable from this image: every free parameter is held "
-                "(see warnings)",
+        coordinates=[], status="failed", message=message,
         iterations=0, cost=0.5 * float(np.sum(r * r)), image_rmse=rmse,
         n_pixels=int(problem.rows.size),
         n_excluded=problem.n_dropped + int(np.sum(~used.all(axis=-1))),
