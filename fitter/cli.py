@@ -38,6 +38,7 @@ import tempfile
 import time
 from typing import Any, Sequence
 
+from . import __version__
 from .compilation_cache import enable_compilation_cache
 from .errors import FitterError
 from .interrupt import check_interrupt, signals_as_interrupt
@@ -87,6 +88,7 @@ def _parser() -> argparse.ArgumentParser:
         prog="fitter",
         description="Recover BSDF parameters from images of a sphere (JAX forward model, "
                     "Mitsuba 3 validation). Configs are documented in configs/README.md.")
+    p.add_argument("--version", action="version", version=f"fitter {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     f = sub.add_parser("fit", help="fit a material to a target image",
@@ -293,7 +295,8 @@ def cmd_fit(args) -> int:
     if args.validate is not None:
         job = job.replace(fit=job.fit.replace(validate=args.validate))
     target_path = _target_path(job, args.target)
-    target, saturated = pipeline.read_target(target_path, job.scene)
+    target, saturated = pipeline.read_target(target_path, job.scene,
+                                             job.fit.target_encoding)
     job = job.replace(fit=job.fit.replace(target=target_path))  # config.toml records it
     out = check_out(args.out or os.path.join("out", job.name))  # before any fitting
     from .report_process import start
@@ -410,7 +413,8 @@ def cmd_validate(args) -> int:
     log = _Log(args.quiet)
     job = _load(args.config)
     params = read_params(args.result, job)
-    target, saturated = pipeline.read_target(_target_path(job, args.target), job.scene)
+    target, saturated = pipeline.read_target(_target_path(job, args.target), job.scene,
+                                             job.fit.target_encoding)
     spp = job.fit.validate_spp if args.spp is None else args.spp
     if spp < 1:
         raise UsageError(f"--spp {spp}: expected an integer >= 1")

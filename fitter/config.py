@@ -21,6 +21,7 @@ from typing import Any, Mapping
 
 from . import checks
 from .fit import LOSSES, SOLVERS
+from .imageio import ENCODINGS
 from .material import Material
 from .scene import Scene, resolve_path
 from .serialize import (  # the table readers and writers; re-exported for cli.py and tests
@@ -67,6 +68,8 @@ class FitOptions:
         saturation: pixels with any channel at or above this linear value
             are excluded (None: only clipped pixels of 8-bit files).
         dtype: ``"float64"`` or ``"float32"`` for the forward model.
+        target_encoding: how the target file's values are encoded
+            (``imageio.ENCODINGS``: "auto", "srgb" or "linear").
     """
 
     target: str | None = None
@@ -82,6 +85,7 @@ class FitOptions:
     validate_spp: int = 256
     saturation: float | None = None
     dtype: str = "float64"
+    target_encoding: str = "auto"
 
     def replace(self, **changes) -> "FitOptions":
         return dataclasses.replace(self, **changes)
@@ -185,6 +189,8 @@ def _fit_from_dict(r: Reader, tbl: dict, base_dir: str) -> FitOptions:
         solver=r.choice(tbl.get("solver", d.solver), "fit.solver", solvers()),
         mask=r.choice(tbl.get("mask", d.mask), "fit.mask", MASKS),
         loss=r.choice(tbl.get("loss", d.loss), "fit.loss", LOSSES),
+        target_encoding=r.choice(tbl.get("target_encoding", d.target_encoding),
+                                 "fit.target_encoding", ENCODINGS),
         **{name: rule(name) for name in ("n_starts", "max_steps", "rtol", "atol",
                                          "noise_sigma", "validate", "validate_spp",
                                          "saturation", "dtype")},

@@ -1,7 +1,8 @@
 """Image files through OpenImageIO: EXR/HDR read as linear, 8-bit as sRGB.
 
 All reads return float64 (H, W, 3) linear RGB; 8-bit (and 16-bit integer)
-files are decoded from sRGB with colour-science. Problems raise
+files are decoded from sRGB with colour-science unless the caller says the
+values are linear (``ENCODINGS``). Problems raise
 ``ImageError`` with one sentence naming the file.
 """
 
@@ -20,6 +21,13 @@ class ImageError(FitterError):
 
 
 LINEAR_FORMATS = (".exr", ".hdr", ".pfm")
+
+
+#: How a target's values are encoded (``fit.target_encoding``): "auto" decodes
+#: integer files (8/16-bit PNG, TIFF, JPEG) from sRGB and takes float files (EXR,
+#: HDR, float TIFF) as linear; "srgb" and "linear" say it for any file (a 16-bit
+#: TIFF of linear raw values is common, and nothing in an untagged file tells).
+ENCODINGS = ("auto", "srgb", "linear")
 
 
 def read_image_raw(path: str):
@@ -83,18 +91,20 @@ def image_size(path: str) -> tuple[int, int]:
         inp.close()
 
 
-def read_image(path: str, with_saturation: bool = False):
+def read_image(path: str, with_saturation: bool = False, encoding: str = "auto"):
     """Read ``path`` as linear RGB float64 (H, W, 3).
 
-    With ``with_saturation=True`` also return a (H, W) bool mask of pixels
-    clipped in an integer-format file (any channel at the format's maximum);
-    it is all False for HDR files.
+    ``encoding``: one of ``ENCODINGS`` (integer values are scaled to [0, 1]
+    first). With ``with_saturation=True`` also return a (H, W) bool mask of
+    pixels clipped in an integer-format file (any channel at the format's
+    maximum); it is all False for float files.
     """
     pixels, is_int = read_image_raw(path)
     rgb = to_rgb(pixels, path)
     saturated = np.zeros(rgb.shape[:2], dtype=bool)
     if is_int:
         saturated = np.any(rgb >= 1.0, axis=-1)
+    if encoding == "srgb" or (encoding == "auto" and is_int):
         rgb = srgb_to_linear(rgb)
     return (rgb, saturated) if with_saturation else rgb
 

@@ -11,6 +11,7 @@ import contextlib
 import dataclasses
 import math
 import os
+import platform
 import time
 from typing import TYPE_CHECKING, Any, Callable, ContextManager, Mapping
 
@@ -110,7 +111,29 @@ class Outcome:
         d["config"] = self.job.path
         if self.validation is not None:
             d["validation"] = self.validation.to_dict()
+        d["software"] = software()
         return plain(d)
+
+
+#: Libraries whose installed versions a result records (a warm run's solve comes
+#: from a trace cached under these versions, without importing optimistix).
+RECORDED = ("jax", "jaxlib", "optimistix", "equinox", "lineax", "numpy", "mitsuba", "drjit")
+
+
+def software() -> dict[str, str]:
+    """The versions that made a result: fitter's, Python's and the installed
+    ``RECORDED`` libraries' (6 ms of package metadata; one not installed is absent)."""
+    from importlib import metadata
+
+    from . import __version__
+
+    out = {"fitter": __version__, "python": platform.python_version()}
+    for name in RECORDED:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
 
 
 def _silent(text: str) -> ContextManager:
@@ -285,8 +308,9 @@ def truth_params(job: Job) -> dict[str, Any]:
     return job.material.full_params({**job.fixed, **job.truth})
 
 
-def read_target(path: str, scene) -> tuple[np.ndarray, np.ndarray]:
-    """Target (H, W, 3) linear float64 and (H, W) saturated mask, checked against ``scene``.
+def read_target(path: str, scene, encoding: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Target (H, W, 3) linear float64 and (H, W) saturated mask, checked against ``scene``;
+    ``encoding``: how the file's values are encoded (``imageio.ENCODINGS``).
 
     Raises ``ImageError`` naming the file for a missing/unreadable file, a
     size other than the scene's, NaN/Inf or negative pixel values.
@@ -295,7 +319,7 @@ def read_target(path: str, scene) -> tuple[np.ndarray, np.ndarray]:
 
     if os.path.isdir(path):
         raise ImageError(f"{path}: is a folder, expected a target image file")
-    img, saturated = read_image(path, with_saturation=True)
+    img, saturated = read_image(path, with_saturation=True, encoding=encoding)
     h, w = img.shape[:2]
     if (w, h) != (scene.width, scene.height):
         raise ImageError(f"{path}: image is {w}x{h} pixels but the scene is "

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from small_case import SMALL, write_case
 
+import fitter
 from fitter import imageio
 from fitter.cli import main
 from fitter.config import dumps_toml, job_to_dict, load_config
@@ -32,6 +33,8 @@ SELF_FIT_ABS = 1e-6
 #: 1.6e-3 in linear radiance below 1; a bias of that size in every pixel
 #: bounds the parameter errors (measured: 1.5e-4 in rho_d, 5e-4 in m).
 SRGB8_ABS = 2e-3
+#: ... and of 16-bit linear values (a step of 1.5e-5 of full scale).
+LINEAR16_ABS = 1e-4
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
@@ -52,6 +55,11 @@ def test_python_m_fitter_help_lists_the_commands():
         assert command in proc.stdout
 
 
+def test_version_is_the_packages(capsys):
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"fitter {fitter.__version__}"
+
+
 def test_fit_json_is_the_result_contract_and_recovers_a_forward_model_target(
         small, tmp_path, capsys):
     out = tmp_path / "res"
@@ -63,6 +71,11 @@ def test_fit_json_is_the_result_contract_and_recovers_a_forward_model_target(
         assert key in result
     assert set(result["time_s"]) >= {"compile", "run", "total"}
     assert result["status"] == "converged"
+    # the versions that made it, as installed (the package's own, and metadata)
+    from importlib import metadata
+    assert result["software"]["fitter"] == fitter.__version__
+    for lib in ("jax", "optimistix", "numpy", "mitsuba"):
+        assert result["software"][lib] == metadata.version(lib), lib
     assert "validation" not in result
     for key, te in result["truth_error"].items():
         assert np.max(te["abs"]) < SELF_FIT_ABS, (key, te)
@@ -134,6 +147,36 @@ def test_8bit_srgb_target_is_decoded_and_its_clipped_pixels_are_excluded(tmp_pat
     assert result["n_excluded"] >= 1
     for key, te in result["truth_error"].items():
         assert np.max(te["abs"]) < SRGB8_ABS, (key, te)
+
+
+def test_16bit_linear_target_is_read_as_linear_when_the_config_says_so(tmp_path, capsys):
+    """A 16-bit TIFF of linear values (as raw converters write them; an untagged
+    file does not say): fit.target_encoding = "linear" recovers the truth the
+    target was rendered with; "auto" decodes it from sRGB, as every integer
+    file, and that fit fails; a value outside the choices names the key."""
+    import OpenImageIO as oiio
+
+    data = json.loads(json.dumps(SMALL))
+    data["fit"].update(target="target.tif", target_encoding="linear")
+    cfg = write_case(str(tmp_path), data)  # the forward model's render, target.exr
+    img = imageio.read_image(str(tmp_path / "target.exr"))
+    assert 0.1 < img.max() < 1.0
+    codes = np.round(img * 65535).astype(np.uint16)
+    out = oiio.ImageOutput.create("target.tif")
+    out.open(str(tmp_path / "target.tif"), oiio.ImageSpec(img.shape[1], img.shape[0], 3,
+                                                          oiio.UINT16))
+    out.write_image(codes)
+    out.close()
+    code, stdout, err = _run(capsys, "fit", cfg, "--out", tmp_path / "lin", "--json", "--quiet")
+    assert code == 0, err
+    for key, te in json.loads(stdout)["truth_error"].items():
+        assert np.max(te["abs"]) < LINEAR16_ABS, (key, te)
+    for encoding, want in (("auto", 3), ("sRGB", 2)):
+        data["fit"]["target_encoding"] = encoding
+        (tmp_path / "small.toml").write_text(dumps_toml(data))
+        code, _, err = _run(capsys, "fit", cfg, "--out", tmp_path / encoding, "--quiet")
+        assert code == want, err
+    assert "fit.target_encoding" in err and "'auto', 'srgb', 'linear'" in err, err
 
 
 def test_exr_round_trip_is_exact_in_float32(tmp_path):

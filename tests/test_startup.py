@@ -34,6 +34,7 @@ def _modules_after(argv, tmp_path):
 
 @pytest.mark.parametrize("argv,rc", [
     (["--help"], 0),
+    (["--version"], 0),
     (["fit"], 2),
     (["fit", "absent.toml"], 2),
     (["fit", "bad.toml"], 2),

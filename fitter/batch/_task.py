@@ -38,7 +38,8 @@ def run_entry(entry: Entry, root: str | None, topic: str = TOPIC) -> dict[str, A
         job = entry.job
         _scene_of(job)
         if isinstance(entry.target, str):
-            target, saturated = pipeline.read_target(entry.target, job.scene)
+            target, saturated = pipeline.read_target(entry.target, job.scene,
+                                                     job.fit.target_encoding)
             target_path = entry.target
         else:
             target, saturated, target_path = _array_target(entry.target, job.scene), None, ""
