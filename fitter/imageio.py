@@ -1,14 +1,15 @@
-"""Image files through OpenImageIO: EXR/HDR read as linear, 8-bit as sRGB.
+"""Image files through OpenImageIO: float files read as linear, integer files decoded.
 
 All reads return float64 (H, W, 3) linear RGB; 8-bit (and 16-bit integer)
-files are decoded from sRGB with colour-science unless the caller says the
-values are linear (``ENCODINGS``). Problems raise
+files are decoded as their colour space tag says, untagged ones from sRGB
+(colour-science), unless the caller says how (``ENCODINGS``). Problems raise
 ``ImageError`` with one sentence naming the file.
 """
 
 from __future__ import annotations
 
 import os
+import re
 import tempfile
 
 import numpy as np
@@ -23,15 +24,20 @@ class ImageError(FitterError):
 LINEAR_FORMATS = (".exr", ".hdr", ".pfm")
 
 
-#: How a target's values are encoded (``fit.target_encoding``): "auto" decodes
-#: integer files (8/16-bit PNG, TIFF, JPEG) from sRGB and takes float files (EXR,
-#: HDR, float TIFF) as linear; "srgb" and "linear" say it for any file (a 16-bit
-#: TIFF of linear raw values is common, and nothing in an untagged file tells).
+#: How a target's values are encoded (``fit.target_encoding``): "auto" takes float
+#: files (EXR, HDR, float TIFF) as linear and integer files (8/16-bit PNG, TIFF,
+#: JPEG) as their colour space says (OpenImageIO's ``oiio:ColorSpace``: a PNG's
+#: gAMA chunk; ``LINEAR_SPACES`` linear, "g22_..." a 2.2 power law), else sRGB; "srgb"
+#: and "linear" say it for any file (a 16-bit TIFF of linear raw values is
+#: common, and nothing in an untagged TIFF tells).
 ENCODINGS = ("auto", "srgb", "linear")
+#: OpenImageIO's names of linear colour spaces (its colour-config-free defaults).
+LINEAR_SPACES = ("linear", "lin_rec709_scene", "lin_rec709", "lin_srgb", "scene_linear")
 
 
 def read_image_raw(path: str):
-    """(pixels float64 (H, W, C), is_integer_format) as stored, no conversion."""
+    """(pixels float64 (H, W, C), is_integer_format, OpenImageIO's colour space
+    name or "") as stored, no conversion."""
     import OpenImageIO as oiio
 
     if not os.path.exists(path):
@@ -42,6 +48,7 @@ def read_image_raw(path: str):
     try:
         spec = inp.spec()
         is_int = spec.format.basetype in (oiio.UINT8, oiio.UINT16, oiio.INT8, oiio.INT16)
+        space = spec.get_string_attribute("oiio:ColorSpace", "")
         pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
     finally:
         inp.close()
@@ -50,7 +57,7 @@ def read_image_raw(path: str):
     pixels = np.asarray(pixels, dtype=np.float64)
     if pixels.ndim == 2:
         pixels = pixels[..., None]
-    return pixels, is_int
+    return pixels, is_int, space
 
 
 def to_rgb(pixels: np.ndarray, path: str) -> np.ndarray:
@@ -99,13 +106,19 @@ def read_image(path: str, with_saturation: bool = False, encoding: str = "auto")
     pixels clipped in an integer-format file (any channel at the format's
     maximum); it is all False for float files.
     """
-    pixels, is_int = read_image_raw(path)
+    pixels, is_int, space = read_image_raw(path)
     rgb = to_rgb(pixels, path)
     saturated = np.zeros(rgb.shape[:2], dtype=bool)
     if is_int:
         saturated = np.any(rgb >= 1.0, axis=-1)
-    if encoding == "srgb" or (encoding == "auto" and is_int):
+    gamma = re.match(r"g(\d)(\d)_", space.lower())  # "g22_rec709_scene": a PNG's gAMA
+    if encoding == "auto" and is_int:
+        encoding = ("linear" if space.lower() in LINEAR_SPACES else
+                    "gamma" if gamma else "srgb")
+    if encoding == "srgb":
         rgb = srgb_to_linear(rgb)
+    elif encoding == "gamma":  # a pure power law
+        rgb = np.maximum(rgb, 0.0) ** float(f"{gamma.group(1)}.{gamma.group(2)}")
     return (rgb, saturated) if with_saturation else rgb
 
 

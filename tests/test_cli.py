@@ -179,6 +179,34 @@ def test_16bit_linear_target_is_read_as_linear_when_the_config_says_so(tmp_path,
     assert "fit.target_encoding" in err and "'auto', 'srgb', 'linear'" in err, err
 
 
+@pytest.mark.parametrize("space,decode", [
+    ("lin_rec709_scene", lambda v: v),  # a PNG's gAMA of 1.0
+    ("g22_rec709_scene", lambda v: v ** 2.2),  # gAMA 1/2.2: a pure power law
+    ("g18_rec709_scene", lambda v: v ** 1.8),
+    (None, "srgb"),  # no tag written: PNG's default
+])
+def test_auto_encoding_follows_an_integer_files_colour_space_tag(tmp_path, space, decode):
+    """``fit.target_encoding = "auto"``: a 16-bit PNG is decoded as the colour space
+    OpenImageIO reads from it says. References: the closed forms of the power laws
+    and colour-science's sRGB EOTF on the stored code values."""
+    import colour
+    import OpenImageIO as oiio
+
+    values = np.linspace(0.0, 1.0, 24, dtype=np.float32).reshape(2, 4, 3)
+    spec = oiio.ImageSpec(4, 2, 3, oiio.UINT16)
+    if space:
+        spec.attribute("oiio:ColorSpace", space)
+    path = str(tmp_path / "x.png")
+    out = oiio.ImageOutput.create(path)
+    out.open(path, spec)
+    out.write_image(values)
+    out.close()
+    stored = np.round(values.astype(np.float64) * 65535) / 65535
+    want = colour.models.eotf_sRGB(stored) if decode == "srgb" else decode(stored)
+    np.testing.assert_allclose(imageio.read_image(path), want, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(imageio.read_image(path, encoding="linear"), stored, atol=1e-7)
+
+
 def test_exr_round_trip_is_exact_in_float32(tmp_path):
     rng = np.random.default_rng(0)
     img = rng.uniform(0.0, 50.0, size=(7, 9, 3))
