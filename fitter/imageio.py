@@ -122,6 +122,29 @@ def read_image(path: str, with_saturation: bool = False, encoding: str = "auto")
     return (rgb, saturated) if with_saturation else rgb
 
 
+def encoding_note(path: str, encoding: str) -> str | None:
+    """A sentence where ``encoding`` "auto" decodes ``path``, a 16-bit integer
+    file without a colour space tag, from sRGB (such files often hold a raw
+    converter's linear values, and nothing in them tells), else None."""
+    if encoding != "auto" or not path or not os.path.isfile(path):
+        return None
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(path)
+    if inp is None:
+        return None
+    try:
+        spec = inp.spec()
+        wide = spec.format.basetype in (oiio.UINT16, oiio.INT16)
+        tagged = bool(spec.get_string_attribute("oiio:ColorSpace", ""))
+    finally:
+        inp.close()
+    if not wide or tagged:
+        return None
+    return (f"{path}: 16-bit values without a colour space tag were decoded from sRGB; if "
+            'they are linear (a raw converter\'s), set fit.target_encoding = "linear"')
+
+
 def check_radiance(img: np.ndarray, where: str, what: str) -> None:
     """Raise ``ImageError`` unless every value of ``img`` (..., 3) is linear
     radiance: finite and >= 0. ``where`` begins the message (the file, and its

@@ -175,6 +175,11 @@ def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *
         with timed("validate", f"validating with Mitsuba ({spp} spp)"):
             validation = validate(job, result.params, target, saturated, spp, compare)
     truth = truth_error(result.params, result.stderr, job.truth) if job.truth else {}
+    from .imageio import encoding_note
+
+    note = encoding_note(target_path or (job.fit.target or ""), job.fit.target_encoding)
+    if note:
+        result.warnings.append(note)
     return Outcome(job=job, target_path=target_path or (job.fit.target or ""), target=target,
                    fit=result, rendered=rendered, validation=validation, truth_error=truth,
                    stage_times=times)

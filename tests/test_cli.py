@@ -152,8 +152,9 @@ def test_8bit_srgb_target_is_decoded_and_its_clipped_pixels_are_excluded(tmp_pat
 def test_16bit_linear_target_is_read_as_linear_when_the_config_says_so(tmp_path, capsys):
     """A 16-bit TIFF of linear values (as raw converters write them; an untagged
     file does not say): fit.target_encoding = "linear" recovers the truth the
-    target was rendered with; "auto" decodes it from sRGB, as every integer
-    file, and that fit fails; a value outside the choices names the key."""
+    target was rendered with; "auto" decodes it from sRGB, as every untagged
+    integer file, that fit fails, and a warning says how the file was read and
+    which key changes it; a value outside the choices names the key."""
     import OpenImageIO as oiio
 
     data = json.loads(json.dumps(SMALL))
@@ -169,13 +170,22 @@ def test_16bit_linear_target_is_read_as_linear_when_the_config_says_so(tmp_path,
     out.close()
     code, stdout, err = _run(capsys, "fit", cfg, "--out", tmp_path / "lin", "--json", "--quiet")
     assert code == 0, err
-    for key, te in json.loads(stdout)["truth_error"].items():
+    result = json.loads(stdout)
+    for key, te in result["truth_error"].items():
         assert np.max(te["abs"]) < LINEAR16_ABS, (key, te)
-    for encoding, want in (("auto", 3), ("sRGB", 2)):
-        data["fit"]["target_encoding"] = encoding
-        (tmp_path / "small.toml").write_text(dumps_toml(data))
-        code, _, err = _run(capsys, "fit", cfg, "--out", tmp_path / encoding, "--quiet")
-        assert code == want, err
+    assert not [w for w in result["warnings"] if "16-bit" in w]
+    data["fit"]["target_encoding"] = "auto"
+    (tmp_path / "small.toml").write_text(dumps_toml(data))
+    code, stdout, err = _run(capsys, "fit", cfg, "--out", tmp_path / "auto", "--json", "--quiet")
+    assert code == 3, err
+    # the untagged 16-bit file's decoding is said, with the key that changes it
+    assert [w for w in json.loads(stdout)["warnings"] if w.startswith(
+        f"{tmp_path / 'target.tif'}: 16-bit values without a colour space tag") and
+        'fit.target_encoding = "linear"' in w]
+    data["fit"]["target_encoding"] = "sRGB"
+    (tmp_path / "small.toml").write_text(dumps_toml(data))
+    code, _, err = _run(capsys, "fit", cfg, "--out", tmp_path / "bad", "--quiet")
+    assert code == 2, err
     assert "fit.target_encoding" in err and "'auto', 'srgb', 'linear'" in err, err
 
 
