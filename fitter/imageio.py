@@ -111,15 +111,24 @@ def read_image(path: str, with_saturation: bool = False, encoding: str = "auto")
     saturated = np.zeros(rgb.shape[:2], dtype=bool)
     if is_int:
         saturated = np.any(rgb >= 1.0, axis=-1)
-    gamma = re.match(r"g(\d)(\d)_", space.lower())  # "g22_rec709_scene": a PNG's gAMA
     if encoding == "auto" and is_int:
-        encoding = ("linear" if space.lower() in LINEAR_SPACES else
-                    "gamma" if gamma else "srgb")
+        encoding = _tagged(space)
     if encoding == "srgb":
         rgb = srgb_to_linear(rgb)
-    elif encoding == "gamma":  # a pure power law
-        rgb = np.maximum(rgb, 0.0) ** float(f"{gamma.group(1)}.{gamma.group(2)}")
+    elif isinstance(encoding, float):  # a pure power law
+        rgb = np.maximum(rgb, 0.0) ** encoding
     return (rgb, saturated) if with_saturation else rgb
+
+
+def _tagged(space: str):
+    """How an integer file tagged ``space`` (OpenImageIO's colour space name) is
+    decoded: "linear", a power law's exponent ("g22_rec709_scene", a PNG's gAMA
+    of 1/2.2: 2.2) or "srgb" (also untagged)."""
+    space = space.lower()
+    gamma = re.match(r"g(\d)(\d)_", space)
+    if space in LINEAR_SPACES:
+        return "linear"
+    return float(f"{gamma.group(1)}.{gamma.group(2)}") if gamma else "srgb"
 
 
 def encoding_note(path: str, encoding: str) -> str | None:

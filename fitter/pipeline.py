@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, Callable, ContextManager, Mapping
 
 import numpy as np
 
-from .imageio import ImageError
+from .imageio import ImageError, encoding_note
 from .serialize import plain
 
 if TYPE_CHECKING:  # the fit engine imports JAX: only when a job runs
@@ -175,8 +175,6 @@ def run_job(job: Job, target: np.ndarray, saturated: np.ndarray | None = None, *
         with timed("validate", f"validating with Mitsuba ({spp} spp)"):
             validation = validate(job, result.params, target, saturated, spp, compare)
     truth = truth_error(result.params, result.stderr, job.truth) if job.truth else {}
-    from .imageio import encoding_note
-
     note = encoding_note(target_path or (job.fit.target or ""), job.fit.target_encoding)
     if note:
         result.warnings.append(note)

@@ -320,10 +320,10 @@ def all_held(problem: Problem, b: int, t_compile: float, t_run: float) -> FitRes
     # A coordinate run to where its slope underflows is held as unconstrained: a target
     # far brighter than the lobes render (100x an albedo's) ends so; its render says.
     if problem.noise_sigma is None and ratio > MAX_NOISE_RATIO and share > _adequacy.SCALE_SHARE:
-        message += (f"; their render leaves a residual {ratio:.3g} times the target's noise "
-                    f"level, the target {1 - c:.4g} times it ({100 * share:.0f} % of the "
-                    "residual is that uniform scale): check the lights' intensity and the "
-                    "image's exposure")
+        message += (f"; the held values' render leaves a residual {ratio:.3g} times the "
+                    f"target's noise level, the target {1 - c:.4g} times it ({100 * share:.0f}"
+                    " % of the residual is that uniform scale): check the lights' intensity "
+                    "and the image's exposure")
     return FitResult(
         params={k: (np.asarray(v) if np.size(v) > 1 else float(v))
                 for k, v in problem.init_full.items()}, stderr={},
