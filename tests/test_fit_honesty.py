@@ -116,7 +116,7 @@ def test_clipped_highlight_is_named_and_its_saturation_level_recovers_the_truth(
     """A target whose highlight is clipped flat (a camera's white level) at 0.8 of
     its peak: a poor fit whose cause names the clipping and a saturation level;
     fitted again with it the truth the target was rendered with comes back
-    (inverse crime: no model error), as with the exact level."""
+    (inverse crime: no model error)."""
     target = np.asarray(fitter.render(GLOSSY, SCENE))
     level = 0.8 * target.max()
     clipped = np.minimum(target, level)
