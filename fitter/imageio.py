@@ -47,7 +47,7 @@ def read_image_raw(path: str):
         raise ImageError(f"{path}: cannot read image ({oiio.geterror().strip() or 'unknown format'})")
     try:
         spec = inp.spec()
-        is_int = spec.format.basetype in (oiio.UINT8, oiio.UINT16, oiio.INT8, oiio.INT16)
+        is_int = _integer_bits(spec) > 0
         space = spec.get_string_attribute("oiio:ColorSpace", "")
         pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
     finally:
@@ -58,6 +58,14 @@ def read_image_raw(path: str):
     if pixels.ndim == 2:
         pixels = pixels[..., None]
     return pixels, is_int, space
+
+
+def _integer_bits(spec) -> int:
+    """Bits of an integer-format image's channels (an OpenImageIO ``ImageSpec``), 0 for float."""
+    import OpenImageIO as oiio
+
+    return {oiio.UINT8: 8, oiio.INT8: 8, oiio.UINT16: 16, oiio.INT16: 16}.get(
+        spec.format.basetype, 0)
 
 
 def to_rgb(pixels: np.ndarray, path: str) -> np.ndarray:
@@ -144,7 +152,7 @@ def encoding_note(path: str, encoding: str) -> str | None:
         return None
     try:
         spec = inp.spec()
-        wide = spec.format.basetype in (oiio.UINT16, oiio.INT16)
+        wide = _integer_bits(spec) == 16
         tagged = bool(spec.get_string_attribute("oiio:ColorSpace", ""))
     finally:
         inp.close()

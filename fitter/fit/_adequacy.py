@@ -352,30 +352,32 @@ def _below(level: float) -> float:
     return float(np.floor(level / step) * step)
 
 
-def cause(err, model, used, adequacy: dict, starts: list, target=None,
-          edge: bool = False) -> str:
+#: What a poor fit of the wrong brightness asks the user to check.
+EXPOSURE_ADVICE = ("check the lights' intensity and the image's exposure, or fit it (exposure "
+                   "in init, with one lobe parameter fixed as the reference)")
+
+
+def cause(err, model, used, adequacy: dict, starts: list, target, edge: bool) -> str:
     """The likely cause of a poor fit, in words: light/exposure scale, a clipped
-    highlight (``clipped``: ``target`` (P, 3) given), values beyond the boxes
+    highlight (``clipped`` of ``target`` (P, 3)), values beyond the boxes
     (``edge``: the best fit lies on a box's edge), the start, or the model (and
     where the residual sits)."""
     c, share = scale_share(err, model, used)
     loc = where(adequacy)
-    flat = clipped(target, model, used) if target is not None else None
-    if flat is not None and share <= SCALE_SHARE:
+    if share > SCALE_SHARE:
+        return (f"likely an exposure or light scale: the target is {1 - c:.4g} times the "
+                f"fitted image ({100 * share:.0f} % of the residual is that uniform scale); "
+                + EXPOSURE_ADVICE)
+    flat = clipped(target, model, used)
+    if flat is not None:
         return (f"likely a clipped highlight: {flat[0]} fitted pixels share a channel's "
                 f"largest value ({flat[1]:.6g}), a flat top the fit rises above (residual "
                 f"{loc}); leave them out with saturation = {_below(flat[1]):.6g} "
                 "(fit.saturation in a config)")
-    if share > SCALE_SHARE:
-        return (f"likely an exposure or light scale: the target is {1 - c:.4g} times the "
-                f"fitted image ({100 * share:.0f} % of the residual is that uniform scale); "
-                "check the lights' intensity and the image's exposure, or fit it "
-                "(exposure in init, with one lobe parameter fixed as the reference)")
     if edge:  # (an albedo held at 1 by a target 3 times brighter, per channel)
         return ("likely values beyond the parameters' boxes: the best fit presses on a box "
-                "edge (above), so the image asks for more than the lobes can give; check the "
-                "lights' intensity and the image's exposure, or fit it (exposure in init, "
-                f"with one lobe parameter fixed as the reference); residual {loc}")
+                "edge (above), so the image asks for more than the lobes can give; "
+                f"{EXPOSURE_ADVICE}; residual {loc}")
     agree = starts_agree(starts)
     if agree:
         return (f"{len(starts)} starts agree, so it is not the start: the lobes cannot "

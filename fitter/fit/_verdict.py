@@ -322,8 +322,8 @@ def all_held(problem: Problem, b: int, t_compile: float, t_run: float) -> FitRes
     if problem.noise_sigma is None and ratio > MAX_NOISE_RATIO and share > _adequacy.SCALE_SHARE:
         message += (f"; the held values' render leaves a residual {ratio:.3g} times the "
                     f"target's noise level, the target {1 - c:.4g} times it ({100 * share:.0f}"
-                    " % of the residual is that uniform scale): check the lights' intensity "
-                    "and the image's exposure")
+                    " % of the residual is that uniform scale): "
+                    + _adequacy.EXPOSURE_ADVICE)
     return FitResult(
         params={k: (np.asarray(v) if np.size(v) > 1 else float(v))
                 for k, v in problem.init_full.items()}, stderr={},
