@@ -26,6 +26,12 @@ from ._math import safe_sqrt, to_device
 from .scene import Environment, resolve_path
 
 
+#: Smallest envmap (width, height) Mitsuba 3's ``envmap`` accepts (``envmap.cpp``): its
+#: rows run pole to pole, so a 2-row map holds only the poles (Mitsuba 3.9 renders one
+#: unlike this lookup: a 4 x 2 map's background 0.1 off on average, the sphere 64 %).
+MIN_ENVMAP = (2, 3)
+
+
 class EnvData(NamedTuple):
     """Arrays of an environment: ``image`` (H, W, 3) for envmaps else (1, 1, 3)."""
 
@@ -44,7 +50,8 @@ def load_environment(env: Environment, base_dir: str | None = None) -> EnvData:
         except OSError:
             stamp = None  # (read_image names the problem)
         return _read_envmap(path, float(env.scale), stamp)
-    rad = np.zeros(3) if env.type == "black" else np.asarray(env.radiance, dtype=np.float64) * env.scale
+    rad = (np.zeros(3) if env.type == "black"
+           else np.asarray(env.radiance, dtype=np.float64) * env.scale)
     return EnvData(to_device(np.zeros((1, 1, 3))), to_device(rad))
 
 
@@ -52,11 +59,18 @@ def load_environment(env: Environment, base_dir: str | None = None) -> EnvData:
 def _read_envmap(path: str, scale: float, stamp) -> EnvData:
     """An envmap's arrays; ``stamp`` (the file's mtime and size) keys the cache: a fit
     asks for them ~6 times, and a 8192-wide map took ~1.7 s a read."""
-    from .imageio import check_radiance, read_image  # OpenImageIO only for an envmap
+    # (OpenImageIO only for an envmap)
+    from .imageio import ImageError, check_radiance, read_image
 
     img = np.asarray(read_image(path), dtype=np.float64)
     # (a NaN texel reached every render through the sky's pyramid: a traceback in the fit)
-    check_radiance(img, f"{path} (scene.environment.file)", "an envmap")
+    where = f"{path} (scene.environment.file)"
+    check_radiance(img, where, "an envmap")
+    h, w = img.shape[:2]
+    if w < MIN_ENVMAP[0] or h < MIN_ENVMAP[1]:
+        raise ImageError(f"{where}: {w}x{h} pixels; an envmap needs at least "
+                         f"{MIN_ENVMAP[0]}x{MIN_ENVMAP[1]} (Mitsuba's envmap: rows from pole "
+                         "to pole)")
     return EnvData(to_device(img * scale), to_device(np.zeros(3)))
 
 
