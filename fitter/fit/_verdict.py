@@ -148,13 +148,24 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
     if np.all(np.isfinite(cov_z)) and np.any(sd > 0):
         sd, sd_stat, sd_sys, sd_disc, hac = _with_systematic(problem, spec, data, z, cov_z,
                                                              params, model, J)
-    stderr, stderr_stat, stderr_sys, stderr_disc, coords = {}, {}, {}, {}, []
+    unidentifiable = list(unidentifiable)
+    for coord, few in ((hac or {}).get("few_pixels") or {}).items():
+        key = coord.split("[")[0]
+        if key not in unidentifiable:
+            unidentifiable.append(key)
+            which = f"{coord}: " if coord != key else ""
+            warnings.append(
+                f"{key} rests on a pixel or two ({which}{few['effective_pixels']:.2g} effective "
+                f"pixels, most of it at row {few['row']}, column {few['column']}: a glint or "
+                "a sub-pixel highlight): its error would be that pixel's own residual, one "
+                "draw of its noise, so none is stated; give noise_sigma if the noise is "
+                "known, or exclude the pixel to fit it from the others")
+    stderr, stderr_stat, stderr_sys, stderr_disc = {}, {}, {}, {}
     for blk, sl in spec.slices():
         if blk.key not in unidentifiable:  # marked ambiguous: no error to give
             for out, v in ((stderr, sd), (stderr_stat, sd_stat), (stderr_sys, sd_sys),
                            (stderr_disc, sd_disc)):
                 out[blk.key] = v[sl] if blk.size == 3 else float(v[sl][0])
-        coords += [blk.key] if blk.size == 1 else [f"{blk.key}[{i}]" for i in range(3)]
         if np.any(at_edge[sl]):
             warnings.append(f"{blk.key} = {format_value(params[blk.key])} is at the bound of "
                             f"[{blk.lower:g}, {blk.upper:g}]; its standard error is half "
@@ -211,7 +222,8 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         params={k: (np.asarray(params[k]) if np.size(params[k]) > 1 else float(params[k]))
                 for k in spec.material.param_specs()}, stderr=stderr,
         free=[blk.key for blk in spec.blocks],
-        unidentifiable=unidentifiable, correlation=corr, coordinates=coords, status=status,
+        unidentifiable=unidentifiable, correlation=corr, coordinates=_coordinates(spec),
+        status=status,
         message=message, iterations=iters, cost=cost, image_rmse=rmse,
         n_pixels=int(problem.rows.size),
         n_excluded=problem.n_dropped + int(np.count_nonzero(used @ np.ones(3) < 3)),
@@ -222,6 +234,12 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
     if any(lb.derived is not None for lb in spec.material.lobe_objects):
         settle(spec.material, res)  # a conductor's F0; eta, k only along its curve
     return res
+
+
+def _coordinates(spec: Spec) -> list:
+    """Names of the fitted coordinates in order: 'torrance_sparrow.m', 'lambert.rho_d[0]', ..."""
+    return [c for blk, _ in spec.slices()
+            for c in ([blk.key] if blk.size == 1 else [f"{blk.key}[{i}]" for i in range(3)])]
 
 
 def _fitted_pixels(problem: Problem, data: Data) -> np.ndarray:
@@ -259,6 +277,13 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
     info = {"n_blocks": int(n_blocks),
             "hac_over_stat_max": float(np.sqrt(np.max(
                 np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300))))}
+    # (A noise_sigma given is the pixel's noise too: V_stat holds for it.)
+    few = _adequacy.few_pixels(Js, len(pix), gram) if problem.noise_sigma is None else {}
+    if few:
+        names, width = _coordinates(spec), problem.renderer.scene.width
+        info["few_pixels"] = {names[j]: {"effective_pixels": n_eff, "row": int(pix[p] // width),
+                                         "column": int(pix[p] % width)}
+                              for j, (n_eff, p) in few.items()}
     t0 = time.perf_counter()
     rows, share = data.geometry.kept("finer rows", lambda: _discretisation.sample_rows(
         _adequacy.pixel_regions(data.geometry), problem.renderer.scene))
