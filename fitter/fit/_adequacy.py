@@ -195,11 +195,11 @@ def _chunks(J, pixels: int, bread):
 
 
 def few_pixels(J, pixels: int, gram=None) -> dict:
-    """Coordinates that rest on a pixel or two: {j: (N_j, pixel)} where the
+    """Coordinates that rest on a pixel or two: {j: (N_j, pixels)} where the
     effective number of pixels behind coordinate j (``heteroscedastic``'s N_j)
-    is below ``MIN_PIXELS``; ``pixel`` is the index (into the fitted pixels)
-    of the one with the largest share w_pj of its variance. ``J`` (N, n) and
-    ``gram`` as ``heteroscedastic`` takes them.
+    is below ``MIN_PIXELS``; ``pixels`` (indices into the fitted pixels) are
+    those with ``GLINT_SHARE`` or more of its variance, the largest share
+    first. ``J`` (N, n) and ``gram`` as ``heteroscedastic`` takes them.
 
     Such a coordinate (a glint, a sub-pixel highlight) has its error from those
     pixels' own residuals, one draw of their noise each: without a known noise
@@ -210,17 +210,22 @@ def few_pixels(J, pixels: int, gram=None) -> dict:
     n = J.shape[1]
     bread = np.linalg.pinv(J.T @ J if gram is None else gram, hermitian=True)
     w1, w2 = np.zeros(n), np.zeros(n)
-    top, top_w = np.zeros(n, dtype=np.int64), np.full(n, -1.0)
+    top_i, top_w = np.zeros((0, n), dtype=np.int64), np.zeros((0, n))
+    keep = int(np.ceil(1.0 / GLINT_SHARE))  # no more pixels can each hold that share
     for p0, _, jb in _chunks(J, pixels, bread):
         w = np.einsum("pcn,pcn->pn", jb, jb)
         w1 += w.sum(0)
         w2 += np.einsum("pn,pn->n", w, w)
-        i = np.argmax(w, axis=0)
-        better = w[i, np.arange(n)] > top_w
-        top[better], top_w[better] = p0 + i[better], w[i, np.arange(n)][better]
+        i = np.argsort(-w, axis=0)[:keep]
+        top_i = np.concatenate([top_i, p0 + i])
+        top_w = np.concatenate([top_w, np.take_along_axis(w, i, axis=0)])
     n_eff = w1**2 / np.maximum(w2, 1e-300)
-    return {int(j): (float(n_eff[j]), int(top[j])) for j in np.nonzero(
-        (n_eff < MIN_PIXELS) & (w1 > 0))[0]}
+    out = {}
+    for j in np.nonzero((n_eff < MIN_PIXELS) & (w1 > 0))[0]:
+        order = np.argsort(-top_w[:, j])
+        big = order[top_w[order, j] >= GLINT_SHARE * w1[j]]
+        out[int(j)] = (float(n_eff[j]), [int(p) for p in top_i[big, j]])
+    return out
 
 
 #: ``few_pixels``: a coordinate with fewer effective pixels than this rests on one or
@@ -229,6 +234,9 @@ def few_pixels(J, pixels: int, gram=None) -> dict:
 #: glint one pixel with 96 % of it, the fit 7 stated errors off (the glint's Monte
 #: Carlo noise ~3 %, the image's other pixels' ~0.1 %).
 MIN_PIXELS = 3.0
+#: ``few_pixels`` names the pixels holding at least this share of such a coordinate's
+#: variance (the glass sphere's glint: 0.96, the next pixel 0.02).
+GLINT_SHARE = 0.1
 #: ``heteroscedastic`` corrects the residuals of pixels of more leverage than this
 #: (the trace of H_pp) only: the others' variance is understated by under 2 %.
 LEVERAGE = 0.01

@@ -24,7 +24,7 @@ from ..hugepages import advice_off
 from ..limits import check_scene
 from ..material import Material
 from ..scene import Scene
-from . import _args, _coarse, _discretisation, _edge, _profile
+from . import _args, _coarse, _discretisation, _edge, _glints, _profile
 from ._ahead import import_ahead, settled
 from ._compile import (best_start, compile_ahead, compiled, jac_res, r_factor,
                        remember_jacobian)
@@ -299,8 +299,10 @@ def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
                       identifiability=identifiability, t_start=time.perf_counter(),
                       t_compile=t_compile, starts=[], refit=False,
                       jr=(r_factor(R[b]), np.asarray(r[b], dtype=np.float64)))
-        # became unidentifiable, or out of steps short of a box edge: refit alone
-        if identifiability and (res is None or _edge.candidate(problem.spec, res)):
+        # became unidentifiable, out of steps short of a box edge, or resting on a
+        # glint (``_glints``): refit alone
+        if identifiability and (res is None or _edge.candidate(problem.spec, res)
+                                or "few_pixels" in res.adequacy.get("blocks", {})):
             res = fit(targets[b], scene, material, identifiability=True, **kwargs)
         else:
             res = dataclasses.replace(res, time_run=res.time_run + share,
@@ -453,6 +455,12 @@ def _finish(problem: Problem, b: int, z, code: int, iters: int, cost: float, *,
         iters += int(nsteps[best_i])
         J, r = r_factor(J), np.asarray(r, dtype=np.float64)
         alternatives = [(zs[i], float(costs[i])) for i in range(len(costs)) if i != best_i]
+    if refit and identifiability and np.isfinite(cost):
+        glint = _glints.refit(problem, b, z, solve_starts, say)
+        if glint is not None:
+            problem, z, code, cost, steps, (J, r), tc = glint
+            spec, data = problem.spec, problem.data(b)
+            iters, t_compile = iters + steps, t_compile + tc
     warnings, unidentifiable = list(problem.warnings), list(problem.unidentifiable)
     if marked and marked[0]:
         unidentifiable += list(dict.fromkeys(marked[0]))

@@ -56,6 +56,11 @@ class Spec:
             yield b, slice(start, start + b.size)
             start += b.size
 
+    def coordinates(self) -> list[str]:
+        """Names of the coordinates in order: 'torrance_sparrow.m', 'lambert.rho_d[0]', ..."""
+        return [c for b in self.blocks
+                for c in ([b.key] if b.size == 1 else [f"{b.key}[{i}]" for i in range(3)])]
+
 
 class Data(NamedTuple):
     """Arrays of a fit: geometry of the fitted pixels, target, weights, fixed values."""

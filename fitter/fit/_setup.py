@@ -337,6 +337,15 @@ class Problem:
         return dataclasses.replace(self.held(list(values), [], values),
                                    unidentifiable=self.unidentifiable)
 
+    def without(self, b: int | None, pixels, reasons) -> Problem:
+        """This problem with the fitted ``pixels`` (indices into ``rows``) of target
+        ``b`` (every target if None) weighted 0, ``reasons`` added to its warnings.
+        The shapes stay: the compiled solve is reused."""
+        weights = self.weights.copy()
+        weights[slice(None) if b is None else b, np.asarray(pixels, dtype=np.int64)] = 0.0
+        return dataclasses.replace(self, weights=weights,
+                                   warnings=self.warnings + tuple(reasons))
+
     def held(self, keys, reasons, values=None) -> Problem:
         """This problem with parameters ``keys`` no longer free, ``reasons``
         added to its warnings, and held at ``values`` where given (else at

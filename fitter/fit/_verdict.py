@@ -159,7 +159,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
                 f"pixels, most of it at row {few['row']}, column {few['column']}: a glint or "
                 "a sub-pixel highlight): its error would be that pixel's own residual, one "
                 "draw of its noise, so none is stated; give noise_sigma if the noise is "
-                "known, or exclude the pixel to fit it from the others")
+                "known")
     stderr, stderr_stat, stderr_sys, stderr_disc = {}, {}, {}, {}
     for blk, sl in spec.slices():
         if blk.key not in unidentifiable:  # marked ambiguous: no error to give
@@ -222,7 +222,7 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         params={k: (np.asarray(params[k]) if np.size(params[k]) > 1 else float(params[k]))
                 for k in spec.material.param_specs()}, stderr=stderr,
         free=[blk.key for blk in spec.blocks],
-        unidentifiable=unidentifiable, correlation=corr, coordinates=_coordinates(spec),
+        unidentifiable=unidentifiable, correlation=corr, coordinates=spec.coordinates(),
         status=status,
         message=message, iterations=iters, cost=cost, image_rmse=rmse,
         n_pixels=int(problem.rows.size),
@@ -234,12 +234,6 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
     if any(lb.derived is not None for lb in spec.material.lobe_objects):
         settle(spec.material, res)  # a conductor's F0; eta, k only along its curve
     return res
-
-
-def _coordinates(spec: Spec) -> list:
-    """Names of the fitted coordinates in order: 'torrance_sparrow.m', 'lambert.rho_d[0]', ..."""
-    return [c for blk, _ in spec.slices()
-            for c in ([blk.key] if blk.size == 1 else [f"{blk.key}[{i}]" for i in range(3)])]
 
 
 def _fitted_pixels(problem: Problem, data: Data) -> np.ndarray:
@@ -280,10 +274,10 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
     # (A noise_sigma given is the pixel's noise too: V_stat holds for it.)
     few = _adequacy.few_pixels(Js, len(pix), gram) if problem.noise_sigma is None else {}
     if few:
-        names, width = _coordinates(spec), problem.renderer.scene.width
+        names, width = spec.coordinates(), problem.renderer.scene.width
         info["few_pixels"] = {names[j]: {"effective_pixels": n_eff, "row": int(pix[p] // width),
                                          "column": int(pix[p] % width)}
-                              for j, (n_eff, p) in few.items()}
+                              for j, (n_eff, (p, *_)) in few.items()}
     t0 = time.perf_counter()
     rows, share = data.geometry.kept("finer rows", lambda: _discretisation.sample_rows(
         _adequacy.pixel_regions(data.geometry), problem.renderer.scene))
