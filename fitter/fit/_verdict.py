@@ -272,7 +272,9 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
             "hac_over_stat_max": float(np.sqrt(np.max(
                 np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300))))}
     # (A noise_sigma given is the pixel's noise too: V_stat holds for it.)
-    few = _adequacy.few_pixels(Js, len(pix), gram) if problem.noise_sigma is None else {}
+    # (J, not Js: the shares do not depend on the coordinates' scales, and _glints
+    # asked of this J already)
+    few = _adequacy.few_pixels(J, len(pix)) if problem.noise_sigma is None else {}
     if few:
         names, width = spec.coordinates(), problem.renderer.scene.width
         info["few_pixels"] = {names[j]: {"effective_pixels": n_eff, "row": int(pix[p] // width),
