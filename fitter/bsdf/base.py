@@ -299,6 +299,11 @@ class Lobe:
         derived: ``derived(p, opts) -> {name: value}``, quantities the image
             determines better than the parameters (``fitter.bsdf.derived``);
             None: none.
+        interior: ``interior(p, opts, at_edge) -> {name: value}``, where a fit
+            stopped with parameters on their box's edge (``at_edge``: {name:
+            bool array of its channels}): a point inside the box on the valley
+            of nearly equal images to solve again from (``fitter.fit._corner``;
+            a conductor's eta, k of the same F0). None or {}: none.
         transmissive: light passes through the sphere (refraction), so what
             the lobe shows depends on the sphere's interior.
         doc: the model in one line (the README's lobe table shows it).
@@ -331,6 +336,7 @@ class Lobe:
     variants: Mapping[tuple[str, Any], tuple[Param, ...]] = dataclasses.field(
         default_factory=dict, compare=False)
     derived: Callable[[dict, dict], dict] | None = None
+    interior: Callable[[dict, dict, dict], dict] | None = None
 
     def params_for(self, opts: Mapping[str, Any]) -> tuple[Param, ...]:
         """The parameters under options ``opts`` (missing options: their defaults)."""

@@ -14,7 +14,12 @@ the shape an RGB (..., 3) array and ``eta``, ``k`` RGB parameters (the lobe's
 Identifiability of a conductor: F(theta) is nearly flat up to ~60 degrees and
 rises to 1 only at grazing, so one image fixes F0 = ((eta - 1)^2 + k^2) /
 ((eta + 1)^2 + k^2) per channel well and eta, k only along the curve of equal
-F0; ``derived`` reports F0 with its standard error and says so.
+F0; ``derived`` reports F0 with its standard error and says so. That curve
+has a dielectric-like branch (k -> 0, eta large) ending in the box's corner
+eta = 10, k = 1e-3, where F0 cannot rise (dF0/dk ~ k, eta on its bound): a
+fit that wanders there from a poor start stops, converged, at a wrong F0
+(measured: gold under a sky with a small sun, F0 6-8 stated errors off), so
+``interior`` puts such a channel back on the metal branch at the same F0.
 
 Options:
     fresnel: ``"dielectric"`` (default, scalar ``eta``) or ``"conductor"``
@@ -35,6 +40,8 @@ References:
 """
 
 import math
+
+import numpy as np
 
 from .._lazy import jnp
 from .._math import safe_div
@@ -176,6 +183,27 @@ def _derived(p, opts):
     return {"F0": conductor_f0(p["eta"], p["k"])}
 
 
+#: eta of ``_interior``'s point: the conductor's default start, on the metal branch.
+INTERIOR_ETA = 1.0
+
+
+def _interior(p, opts, at_edge):
+    """For a conductor channel with eta or k on its box's edge: eta = 1 and
+    k = 2 sqrt(F0 / (1 - F0)), the point of the same F0 = k^2 / (4 + k^2)
+    (``conductor_f0`` at eta = 1) on the metal branch (``Lobe.interior``)."""
+    if opts.get("fresnel", "dielectric") != "conductor":
+        return {}
+    stuck = np.asarray(at_edge.get("eta", False)) | np.asarray(at_edge.get("k", False))
+    if not np.any(stuck):
+        return {}
+    eta = np.asarray(p["eta"], dtype=np.float64)
+    k = np.asarray(p["k"], dtype=np.float64)
+    f0 = np.clip(conductor_f0(eta, k), 1e-12, 0.99)
+    k_lo, k_hi = _K.lower, _K.upper
+    k_new = np.clip(2.0 * np.sqrt(f0 / (1.0 - f0)), 2.0 * k_lo, 0.95 * k_hi)
+    return {"eta": np.where(stuck, INTERIOR_ETA, eta), "k": np.where(stuck, k_new, k)}
+
+
 def _quadrature(p):
     """Half vectors about n within the cap where the Beckmann exponent > e^-40;
     the horizon cuts broad lobes (a kink), hence twice the nodes."""
@@ -183,6 +211,10 @@ def _quadrature(p):
 
 
 _M = Param("m", 1, 0.2, 1e-3, 1.0, "log", "Beckmann roughness (RMS facet slope)")
+_K = Param("k", 3, 3.0, 1e-3, 20.0, "log",
+           "extinction coefficient, the imaginary part of the complex index "
+           "(Au ≈ 3.98, 2.39, 1.60); or a Mitsuba metal's name",
+           named={n: k for n, (_, k) in METALS.items()})
 _RHO = Param("rho_s", 1, 1.0, 0.0, 1.0, "logit", "scale of the lobe", free=False)
 
 LOBE = Lobe(
@@ -207,10 +239,7 @@ LOBE = Lobe(
               "1.44); with `k` only F0 = ((η−1)²+k²)/((η+1)²+k²) is well determined; "
               "or a Mitsuba metal's name (`\"Au\"`, `\"Cu\"`, ...: `fitter/bsdf/metals.py`)",
               named={n: eta for n, (eta, _) in METALS.items()}),
-        Param("k", 3, 3.0, 1e-3, 20.0, "log",
-              "extinction coefficient, the imaginary part of the complex index "
-              "(Au ≈ 3.98, 2.39, 1.60); or a Mitsuba metal's name",
-              named={n: k for n, (_, k) in METALS.items()}),
+        _K,
         _RHO)},
     scale="rho_s",
     shape=_shape,
@@ -220,6 +249,7 @@ LOBE = Lobe(
         "form, as Mitsuba's `roughconductor`",
     mitsuba=MitsubaMapping(_mitsuba, plugins={"fitter_torrance_sparrow": _plugin}),
     derived=_derived,
+    interior=_interior,
     hints=Hints(
         points=(*(Point(f"ts_{g}-m{m:g}", {"m": m, "eta": 4.0, "rho_s": 1.0}, {"geometry": g})
                   for g in ("v_groove", "smith") for m in (0.01, 0.2, 1.0)),

@@ -3,7 +3,8 @@
 Flow: set up the problem -> search the start and cut work options where a lobe
 has them (``_search``) -> hold parameters without effect at the start (for
 Levenberg-Marquardt only where the solution shows one, ``_checked_after``) ->
-solve from one or more starts (one compiled call) -> keep the lowest cost ->
+solve from one or more starts (one compiled call) -> keep the lowest cost
+(solved again from inside the box where it stopped in a corner, ``_corner``) ->
 check identifiability at the solution, hold and refit -> verdict.
 """
 
@@ -24,7 +25,7 @@ from ..hugepages import advice_off
 from ..limits import check_scene
 from ..material import Material
 from ..scene import Scene
-from . import _args, _coarse, _discretisation, _edge, _glints, _profile
+from . import _args, _coarse, _corner, _discretisation, _edge, _glints, _profile
 from ._ahead import import_ahead, settled
 from ._compile import (best_start, compile_ahead, compiled, jac_res, r_factor,
                        remember_jacobian)
@@ -173,6 +174,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         if not problem.blocks:
             return all_held(problem, 0, t_compile, time.perf_counter() - t_start - t_compile)
         data = problem.data(0)
+    first = _corner.leave(problem, first, data, solve_starts, say)
     zs, codes, nsteps, costs, best, (R, r), tc = first
     t_compile += tc
     note = None
@@ -187,8 +189,9 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         if eig < WEAK_EIG or why:  # look from several starts (and check ambiguity)
             z0s = np.concatenate([make_starts(problem.spec, problem.z_init(), AUTO_STARTS),
                                   extra[:2]])
-            zs, codes, nsteps, costs, best, (R, r), tc = solve_starts(
-                problem, z0s, data, say, "weakly identified: ")
+            zs, codes, nsteps, costs, best, (R, r), tc = _corner.leave(
+                problem, solve_starts(problem, z0s, data, say, "weakly identified: "), data,
+                solve_starts, say)
             t_compile += tc
             found = (f"correlation eigenvalue {eig:.2g} < {WEAK_EIG:g}" if not why else
                      f"the cost profile (weakest direction, each parameter's) shows {why}")
@@ -301,8 +304,11 @@ def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
                       jr=(r_factor(R[b]), np.asarray(r[b], dtype=np.float64)))
         # became unidentifiable, out of steps short of a box edge, or resting on a
         # glint (``_glints``): refit alone
+        # ... or in a corner of the box (``_corner``)
         if identifiability and (res is None or _edge.candidate(problem.spec, res)
-                                or "few_pixels" in res.adequacy.get("blocks", {})):
+                                or "few_pixels" in res.adequacy.get("blocks", {})
+                                or _corner.interior_start(problem.spec, zs[b],
+                                                          data.fixed) is not None):
             res = fit(targets[b], scene, material, identifiability=True, **kwargs)
         else:
             res = dataclasses.replace(res, time_run=res.time_run + share,
