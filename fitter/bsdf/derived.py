@@ -158,8 +158,16 @@ def settle(material: Material, result) -> None:
 def _inputs(lobe, material, result) -> set[str]:
     """Names of the lobe's parameters its derived quantities depend on."""
     opts = material.options_of(lobe.name)
-    p = {k: np.asarray(v, dtype=float) for k, v in lobe_params(result.params, lobe.name).items()
-         if k not in opts}
+    return inputs(lobe, opts, lobe_params(result.params, lobe.name))
+
+
+def inputs(lobe, opts, params) -> set[str]:
+    """Names of ``lobe``'s parameters (options ``opts``) that its derived
+    quantities depend on at ``params`` ({name: value}, the lobe's own); empty
+    for a lobe without ``derived``."""
+    if lobe.derived is None:
+        return set()
+    p = {k: np.asarray(v, dtype=float) for k, v in params.items() if k not in opts}
     base = lobe.derived(p, opts)
     out = set()
     for k, v in p.items():

@@ -30,8 +30,8 @@ from ._ahead import import_ahead, settled
 from ._compile import (best_start, compile_ahead, compiled, jac_res, r_factor,
                        remember_jacobian)
 from ._covariance import residual_variance
-from ._identify import (WEAK_EIG, ambiguous, chi2_1dof_level, dead_columns, profile_size,
-                        unidentifiable_at, weak_direction, weak_profile)
+from ._identify import (WEAK_EIG, ambiguous, chi2_1dof_level, dead_columns, known_valley,
+                        profile_size, unidentifiable_at, weak_direction, weak_profile)
 from ._problem import blocks_of, format_value, user_values, z_from_params
 from ._search import cheapened, searched
 from ._setup import START_MARGIN, FitError, Problem
@@ -181,12 +181,15 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
     if n_starts == 1 and identifiability:
         eig, along = weak_direction(problem.spec, r_factor(R))
         why, extra = None, np.zeros((0, problem.spec.n))
+        # A valley the lobe names (its derived quantity) is reported, not walked.
+        known = eig < WEAK_EIG and known_valley(problem.spec, along,
+                                                user_values(problem.spec, zs[best], data.fixed))
         # Not a valley locally: profile the cost (at a minimum only).
         if eig >= WEAK_EIG and start_status(int(codes[best]), zs[best],
                                             costs[best]) == "converged":
             why, extra, _ = weak_profile(problem.spec, data, zs[best], r_factor(R), r,
                                          problem.noise_sigma)
-        if eig < WEAK_EIG or why:  # look from several starts (and check ambiguity)
+        if (eig < WEAK_EIG and not known) or why:  # several starts (and check ambiguity)
             z0s = np.concatenate([make_starts(problem.spec, problem.z_init(), AUTO_STARTS),
                                   extra[:2]])
             zs, codes, nsteps, costs, best, (R, r), tc = _corner.leave(

@@ -144,6 +144,25 @@ def ambiguous(spec: Spec, z, J, s2: float, cost: float, alternatives):
     return (keys, reasons) if keys else None
 
 
+def known_valley(spec: Spec, along: list[str], values: dict) -> bool:
+    """Whether every block of a weak direction ``along`` is an input of its
+    lobe's derived quantities (``fitter.bsdf.derived``: a conductor's eta, k
+    along the curve of equal F0) at the fit's user ``values``: a valley the
+    report already names, with the quantity the image does determine, which
+    several starts would only walk (measured: gold under a sky, 64^2, four
+    starts 100 s, each 150-200 steps along it, none lower in cost)."""
+    from ..bsdf.derived import inputs
+    from ..material import lobe_params
+
+    if not along:
+        return False
+    named = set()
+    for lobe in spec.material.lobe_objects:
+        named |= {f"{lobe.name}.{k}" for k in inputs(
+            lobe, spec.material.options_of(lobe.name), lobe_params(values, lobe.name))}
+    return all(key in named for key in along)
+
+
 def weak_direction(spec: Spec, J) -> tuple[float, list[str]]:
     """(smallest eigenvalue of the correlation matrix of (J^T J)^-1, the blocks
     with the largest weight in its eigenvector): a local look for a valley of
