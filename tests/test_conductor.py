@@ -213,6 +213,8 @@ def test_a_fit_stopped_in_the_dielectric_corner_is_solved_again_inside():
     err = np.abs(f0 - _f0(truth["torrance_sparrow.eta"], truth["torrance_sparrow.k"]))
     assert np.all(err < F0_TOL), (f0, r.params, r.warnings)
     assert r.params["torrance_sparrow.m"] == pytest.approx(0.05, rel=0.02)
+    assert any(w.startswith("torrance_sparrow.eta, torrance_sparrow.k stopped on the box's edge")
+               and w.endswith(", kept") for w in r.warnings), r.warnings
 
 
 @pytest.mark.heavy

@@ -22,9 +22,9 @@ from ._problem import Spec, frame, user_values, z_from_params
 
 
 def interior_start(spec: Spec, z, fixed: dict):
-    """Coordinates (n,) of the lobes' ``interior`` point for the fit at ``z``
-    (``Lobe.interior``), or None where no free parameter of such a lobe lies on
-    its box's edge (``_problem.AT_BOUND``)."""
+    """(coordinates (n,) of the lobes' ``interior`` point for the fit at ``z``
+    (``Lobe.interior``), the keys it moves), or None where no free parameter of
+    such a lobe lies on its box's edge (``_problem.AT_BOUND``)."""
     at = frame(spec, z)[3]
     edge = {blk.key: at[sl] for blk, sl in spec.slices()}
     values = user_values(spec, z, fixed)
@@ -39,20 +39,26 @@ def interior_start(spec: Spec, z, fixed: dict):
         moved.update({prefix + name: v for name, v in point.items() if prefix + name in edge})
     if not moved:
         return None
-    return z_from_params(spec, {**values, **moved})
+    return z_from_params(spec, {**values, **moved}), sorted(moved)
 
 
 def leave(problem, first, data, solve_starts, say):
-    """``first`` (``_drivers.solve_starts``' tuple) with one more start, the
+    """(``first``, ``_drivers.solve_starts``' tuple, with one more start, the
     lobes' interior point of its best fit, where that fit lies in such a
-    corner; the best of all is kept (``best_start``)."""
+    corner; the best of all kept (``best_start``); a note saying so, or None)."""
     zs, codes, steps, costs, best, jr, t_compile = first
-    z1 = interior_start(problem.spec, zs[best], data.fixed)
-    if z1 is None:
-        return first
+    found = interior_start(problem.spec, zs[best], data.fixed)
+    if found is None:
+        return first, None
+    z1, keys = found
     zs1, codes1, steps1, costs1, _, jr1, tc = solve_starts(
         problem, z1[None], data, say, "off the box's edge: ")
+    note = (f"{', '.join(keys)} stopped on the box's edge (cost {float(costs[best]):.4g}); "
+            f"solved again from inside the box along the same valley: cost "
+            f"{float(costs1[0]):.4g}, ")
     zs, codes, steps, costs = (np.concatenate([a, b]) for a, b in
                                ((zs, zs1), (codes, codes1), (steps, steps1), (costs, costs1)))
     new = int(best_start(costs, zs))
-    return zs, codes, steps, costs, new, (jr1 if new == len(costs) - 1 else jr), t_compile + tc
+    note += "kept" if new == len(costs) - 1 else "the first fit kept"
+    return (zs, codes, steps, costs, new, (jr1 if new == len(costs) - 1 else jr),
+            t_compile + tc), note

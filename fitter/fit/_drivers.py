@@ -174,10 +174,10 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         if not problem.blocks:
             return all_held(problem, 0, t_compile, time.perf_counter() - t_start - t_compile)
         data = problem.data(0)
-    first = _corner.leave(problem, first, data, solve_starts, say)
+    first, corner = _corner.leave(problem, first, data, solve_starts, say)
     zs, codes, nsteps, costs, best, (R, r), tc = first
     t_compile += tc
-    note = None
+    notes = [corner] if corner else []
     if n_starts == 1 and identifiability:
         eig, along = weak_direction(problem.spec, r_factor(R))
         why, extra = None, np.zeros((0, problem.spec.n))
@@ -192,15 +192,15 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
         if (eig < WEAK_EIG and not known) or why:  # several starts (and check ambiguity)
             z0s = np.concatenate([make_starts(problem.spec, problem.z_init(), AUTO_STARTS),
                                   extra[:2]])
-            zs, codes, nsteps, costs, best, (R, r), tc = _corner.leave(
+            (zs, codes, nsteps, costs, best, (R, r), tc), corner = _corner.leave(
                 problem, solve_starts(problem, z0s, data, say, "weakly identified: "), data,
                 solve_starts, say)
             t_compile += tc
             found = (f"correlation eigenvalue {eig:.2g} < {WEAK_EIG:g}" if not why else
                      f"the cost profile (weakest direction, each parameter's) shows {why}")
-            note = (f"weakly identified at the first solution ({found}, along "
-                    f"{', '.join(along)}): solved from {len(z0s)} starts to check for a "
-                    "valley or another minimum")
+            notes = [f"weakly identified at the first solution ({found}, along "
+                     f"{', '.join(along)}): solved from {len(z0s)} starts to check for a "
+                     "valley or another minimum"] + ([corner] if corner else [])
     starts = [{"params": user_values(problem.spec, zs[i], data.fixed), "cost": float(costs[i]),
                "status": start_status(int(codes[i]), zs[i], costs[i])}
               for i in range(len(costs))]
@@ -210,8 +210,7 @@ def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None
                   say=say, starts=starts, jr=(r_factor(R), np.asarray(r, dtype=np.float64)),
                   alternatives=[(zs[i], float(costs[i])) for i in range(len(costs))
                                 if i != best])
-    if note:
-        res.warnings.append(note)
+    res.warnings.extend(notes)
     return res
 
 
