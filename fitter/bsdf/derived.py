@@ -4,11 +4,12 @@ A lobe may name such quantities (``Lobe.derived``): ``derived(p, opts) ->
 {name: value}`` from its own parameters, e.g. a conductor's normal-incidence
 reflectance F0 = ((eta - 1)^2 + k^2) / ((eta + 1)^2 + k^2) per channel, which
 one image pins while eta and k trade along a curve of equal F0.
-``derive(material, result)`` evaluates them at a fit and propagates its
-standard errors by the delta method, var(Q) = g^T C g with g = dQ/dx and C
-the covariance of the fitted parameters (their standard errors and the
-fit's correlation matrix), and writes a warning where the parameters
-themselves are far less certain than the quantity.
+``derive(material, result, variance)`` evaluates them at a fit, takes their
+standard errors from the fit's ``variance`` (the delta method, var(Q) =
+g^T C g with g = dQ/dz, by the stated errors' rules along g:
+``fitter.fit._covariance.along``) or, without it, from the parameters'
+standard errors and the fit's correlation matrix, and writes a warning
+where the parameters themselves are far less certain than the quantity.
 
 Reference: the delta method, e.g. Casella, Berger, *Statistical Inference*
 (2nd ed.), sec. 5.5.4.
@@ -59,11 +60,15 @@ def _cov(result, keys: list[str]):
     return c, names
 
 
-def derive(material: Material, result) -> tuple[dict[str, Any], list[str]]:
+def derive(material: Material, result, variance=None) -> tuple[dict[str, Any], list[str]]:
     """``({"lobe.name": {"value": v, "stderr": s}}, warnings)`` at a fit's parameters.
 
     ``stderr`` is None where an input is fixed or unidentifiable (then the
     quantity is as certain as the others make it, which the fit cannot say).
+    ``variance``: the fit's own ``variance(fun) -> stderr`` of a function of
+    its ``{"lobe.param": value}`` (``fitter.fit._covariance.propagator``: the
+    stated errors' rules along the quantity's gradient); without it, the
+    delta method on ``result.stderr`` and ``result.correlation``.
     """
     out: dict[str, Any] = {}
     warnings: list[str] = []
@@ -80,7 +85,13 @@ def derive(material: Material, result) -> tuple[dict[str, Any], list[str]]:
         for name, value in values.items():
             value = np.asarray(value, dtype=float)
             stderr = None
-            if cov is not None:
+            if cov is not None and variance is not None:
+                def q(full, name=name):
+                    return lobe.derived({k: full.get(f"{lobe.name}.{k}", v)
+                                         for k, v in p.items()}, opts)[name]
+
+                stderr = np.asarray(variance(q), dtype=float).reshape(value.shape)
+            elif cov is not None:
                 grads = []
                 for k in free:
                     x = np.atleast_1d(p[k])
@@ -101,7 +112,7 @@ def derive(material: Material, result) -> tuple[dict[str, Any], list[str]]:
     return out, warnings
 
 
-def settle(material: Material, result) -> None:
+def settle(material: Material, result, variance=None) -> None:
     """Evaluate the derived quantities at a fit and mark inputs it determines
     only through them: ``result.derived`` is set (``derive``), and an input
     whose own error is far wider than the quantity's (``LOOSE_REL``,
@@ -110,7 +121,7 @@ def settle(material: Material, result) -> None:
     ``result.unidentifiable`` without a standard error. The quantity keeps its
     error, propagated from the whole covariance before the marking.
     """
-    values, notes = derive(material, result)
+    values, notes = derive(material, result, variance)
     result.derived = values
     for lobe in material.lobe_objects:
         keys = [k for k in values if k.startswith(lobe.name + ".")]

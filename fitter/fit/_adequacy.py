@@ -128,7 +128,12 @@ def systematic(cov_stat, cov_hac, n_blocks: int):
     Per coordinate, var_sys = V_hac - V_stat where V_hac / V_stat exceeds
     1 + SYS_SIGNIFICANCE sqrt(2 / B), else 0; correlations follow V_hac.
     """
-    return _excess(cov_stat, cov_hac, 1.0 + SYS_SIGNIFICANCE * np.sqrt(2.0 / max(n_blocks, 1)))
+    return _excess(cov_stat, cov_hac, block_threshold(n_blocks))
+
+
+def block_threshold(n_blocks: int) -> float:
+    """The ratio V_hac / V_stat above which the block sandwich counts (``systematic``)."""
+    return 1.0 + SYS_SIGNIFICANCE * np.sqrt(2.0 / max(n_blocks, 1))
 
 
 def heteroscedastic(cov_stat, J, r, pixels: int, gram=None):
@@ -162,6 +167,23 @@ def heteroscedastic(cov_stat, J, r, pixels: int, gram=None):
     "Using heteroscedasticity consistent standard errors in the linear
     regression model".
     """
+    return pixel_excess(cov_stat, *pixel_sandwich(J, r, pixels, gram))
+
+
+def pixel_excess(cov_stat, cov_pix, n_eff):
+    """``heteroscedastic`` of a ``pixel_sandwich`` already made."""
+    return _excess(cov_stat, cov_pix, pixel_threshold(n_eff))
+
+
+def pixel_threshold(n_eff):
+    """The ratio V_pix / V_stat above which the pixel sandwich counts
+    (``heteroscedastic``), for ``n_eff`` effective pixels."""
+    return 1.0 + SYS_SIGNIFICANCE * np.sqrt(2.0 / np.maximum(n_eff, 1.0))
+
+
+def pixel_sandwich(J, r, pixels: int, gram=None):
+    """(V_pix (n, n), N_j (n,)): ``heteroscedastic``'s pixel sandwich and each
+    coordinate's effective number of pixels."""
     J = np.asarray(J, dtype=np.float64)
     n, per = J.shape[1], J.shape[0] // max(pixels, 1)
     bread = np.linalg.pinv(J.T @ J if gram is None else gram, hermitian=True)
@@ -180,9 +202,7 @@ def heteroscedastic(cov_stat, J, r, pixels: int, gram=None):
         w = np.einsum("pcn,pcn->pn", jb, jb)
         w1 += w.sum(0)
         w2 += np.einsum("pn,pn->n", w, w)
-    n_eff = w1**2 / np.maximum(w2, 1e-300)
-    return _excess(cov_stat, bread @ meat @ bread,
-                   1.0 + SYS_SIGNIFICANCE * np.sqrt(2.0 / np.maximum(n_eff, 1.0)))
+    return bread @ meat @ bread, w1**2 / np.maximum(w2, 1e-300)
 
 
 def _chunks(J, pixels: int, bread):

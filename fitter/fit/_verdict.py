@@ -15,6 +15,7 @@ from ._covariance import (
     covariance,
     degrees_of_freedom,
     intervals,
+    propagator,
     residual_variance,
     scaled_jacobian,
 )
@@ -144,10 +145,10 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         model = np.asarray(render_active(
             {k: problem.cast(v) for k, v in params.items()}, data.geometry, data.env,
             data.sphere, material=spec.material, env_type=spec.env_type))
-    sd_stat, sd_sys, sd_disc, hac = sd, np.zeros_like(sd), np.zeros_like(sd), None
+    sd_stat, sd_sys, sd_disc, hac, spread = sd, np.zeros_like(sd), np.zeros_like(sd), None, None
     if np.all(np.isfinite(cov_z)) and np.any(sd > 0):
-        sd, sd_stat, sd_sys, sd_disc, hac = _with_systematic(problem, spec, data, z, cov_z,
-                                                             params, model, J)
+        sd, sd_stat, sd_sys, sd_disc, hac, spread = _with_systematic(
+            problem, spec, data, z, cov_z, params, model, J)
     unidentifiable = list(unidentifiable)
     for coord, few in ((hac or {}).get("few_pixels") or {}).items():
         key = coord.split("[")[0]
@@ -232,7 +233,8 @@ def report(problem: Problem, b: int, spec: Spec, data: Data, z, code: int, iters
         stderr_stat=stderr_stat, stderr_sys=stderr_sys, stderr_disc=stderr_disc,
         adequacy=adequacy)
     if any(lb.derived is not None for lb in spec.material.lobe_objects):
-        settle(spec.material, res)  # a conductor's F0; eta, k only along its curve
+        settle(spec.material, res,  # a conductor's F0; eta, k only along its curve
+               None if spread is None else propagator(spec, z, data.fixed, spread))
     return res
 
 
@@ -245,7 +247,8 @@ def _fitted_pixels(problem: Problem, data: Data) -> np.ndarray:
 
 def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, params, model, R):
     """(stderr total, statistical, systematic, of which discretisation (each (n,)),
-    block info), from the Gauss-Newton covariance ``cov_stat``.
+    block info, the matrices ``_covariance.along`` takes), from the Gauss-Newton
+    covariance ``cov_stat``.
 
     Statistical = ``cov_stat`` plus what noise varying over the pixels adds
     (``_adequacy.heteroscedastic``: shot noise). Systematic = the significant
@@ -265,7 +268,9 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
     cov_hac = _adequacy.sandwich(Js, r, ids, n_blocks, gram)
     # Noise varying over the pixels (shot noise) is statistical; the blocks add what
     # spatially structured residuals do beyond it.
-    cov_stat = cov_stat + _adequacy.heteroscedastic(cov_stat, Js, r, len(pix), gram)
+    cov_gn = cov_stat
+    cov_pix, n_eff = _adequacy.pixel_sandwich(Js, r, len(pix), gram)
+    cov_stat = cov_stat + _adequacy.pixel_excess(cov_stat, cov_pix, n_eff)
     sd_stat = intervals(spec, z, cov_stat)[0]
     cov_sys = _adequacy.systematic(cov_stat, cov_hac, n_blocks)
     info = {"n_blocks": int(n_blocks),
@@ -320,7 +325,8 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
     sd_tot = intervals(spec, z, cov_stat + cov_sys + cov_disc)[0]
     sd_sys = np.sqrt(np.maximum(sd_tot**2 - sd_stat**2, 0.0))
     sd_d = np.sqrt(np.maximum(intervals(spec, z, cov_stat + cov_disc)[0] ** 2 - sd_stat**2, 0.0))
-    return sd_tot, sd_stat, sd_sys, np.minimum(sd_d, sd_sys), info
+    return (sd_tot, sd_stat, sd_sys, np.minimum(sd_d, sd_sys), info,
+            (cov_gn, cov_pix, n_eff, cov_hac, n_blocks, cov_disc))
 
 
 def all_held(problem: Problem, b: int, t_compile: float, t_run: float) -> FitResult:
