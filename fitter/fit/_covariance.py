@@ -112,10 +112,11 @@ def along(g, gn, pix, n_eff, hac, n_blocks: int, disc):
     fewest effective pixels ``n_eff`` among the coordinates it depends on),
     plus the block sandwich's over that (``hac``), plus the discretisation
     term ``disc``, each (n, n). For a quantity that is one coordinate this is
-    that coordinate's stated variance. Per coordinate, the excess of a
-    conductor's eta and k is lost in the valley along which they trade, while
-    along F0 the pixel sandwich was 10-15 times the Gauss-Newton variance
-    (gold under a one-texel sun: F0 6-13 stated errors off, 2.7 or less now).
+    that coordinate's stated variance, linearised. Per coordinate, the excess
+    of a conductor's eta and k is lost in the valley along which they trade,
+    while along F0 the pixel sandwich was 10-15 times the Gauss-Newton
+    variance (gold under a one-texel sun, five seeds: F0 up to 13 stated
+    errors off; 2.5 at most now).
     """
     g = np.asarray(g, dtype=np.float64)
 
