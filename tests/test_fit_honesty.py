@@ -341,6 +341,13 @@ def test_few_pixels_names_the_coordinates_one_or_two_pixels_carry():
     assert sorted(few) == [1, 2], few
     assert few[1][1] == [37] and few[2][1] == [212, 211], few
     assert few[1][0] < 1.1 and 1.5 < few[2][0] < 2.0, few  # one pixel; two (9:16 shares)
+    # the same from the pixel sandwich's N_j, and for the columns scaled (the report's)
+    scaled = J * np.array([1.0, 10.0, 0.1, 3.0])
+    n_eff = _adequacy.pixel_sandwich(scaled, np.zeros(3 * pixels), pixels)[1]
+    again = _adequacy.few_pixels(scaled, pixels, n_eff=n_eff)
+    assert {j: v[1] for j, v in again.items()} == {j: v[1] for j, v in few.items()}, again
+    np.testing.assert_allclose([v[0] for v in again.values()], [v[0] for v in few.values()],
+                               rtol=1e-12)
 
 
 #: A parameter in the issue's tolerance list (rho 0.005, eta 0.005).

@@ -214,12 +214,14 @@ def _chunks(J, pixels: int, bread):
         yield p0, jp, (jp.reshape(-1, n) @ bread).reshape(jp.shape)
 
 
-def few_pixels(J, pixels: int, gram=None) -> dict:
+def few_pixels(J, pixels: int, gram=None, n_eff=None) -> dict:
     """Coordinates that rest on a pixel or two: {j: (N_j, pixels)} where the
     effective number of pixels behind coordinate j (``heteroscedastic``'s N_j)
     is below ``MIN_PIXELS``; ``pixels`` (indices into the fitted pixels) are
     those with ``GLINT_SHARE`` or more of its variance, the largest share
-    first. ``J`` (N, n) and ``gram`` as ``heteroscedastic`` takes them.
+    first. ``J`` (N, n) and ``gram`` as ``heteroscedastic`` takes them;
+    ``n_eff``: N_j where ``pixel_sandwich`` made it already (both are the same
+    for J scaled by column).
 
     Such a coordinate (a glint, a sub-pixel highlight) has its error from those
     pixels' own residuals, one draw of their noise each: without a known noise
@@ -227,31 +229,27 @@ def few_pixels(J, pixels: int, gram=None) -> dict:
     image, nor the pixel sandwich can measure it.
     """
     J = np.asarray(J, dtype=np.float64)
-    if _FEW and _FEW[0][0] is J and _FEW[0][1] == pixels:
-        return _FEW[0][2]
-    n = J.shape[1]
     bread = np.linalg.pinv(J.T @ J if gram is None else gram, hermitian=True)
-    w1, w2 = np.zeros(n), np.zeros(n)
-    for _, _, jb in _chunks(J, pixels, bread):
-        w = np.einsum("pcn,pcn->pn", jb, jb)
-        w1 += w.sum(0)
-        w2 += np.einsum("pn,pn->n", w, w)
-    n_eff = w1**2 / np.maximum(w2, 1e-300)
-    few = np.nonzero((n_eff < MIN_PIXELS) & (w1 > 0))[0]
-    big = {int(j): [] for j in few}  # (share, pixel) of each
-    for p0, _, jb in (_chunks(J, pixels, bread) if few.size else ()):  # (seldom: a 2nd pass)
-        w = np.einsum("pcn,pcn->pn", jb[..., few], jb[..., few]) / w1[few]
-        for k, j in enumerate(few):
-            big[int(j)] += [(w[p, k], p0 + p) for p in np.nonzero(w[:, k] >= GLINT_SHARE)[0]]
-    out = {j: (float(n_eff[j]), [int(p) for _, p in sorted(big[j], reverse=True)])
-           for j in big}
-    _FEW[:] = [(J, pixels, out)]
+    if n_eff is None:
+        w1, w2 = np.zeros(J.shape[1]), np.zeros(J.shape[1])
+        for _, _, jb in _chunks(J, pixels, bread):
+            w = np.einsum("pcn,pcn->pn", jb, jb)
+            w1 += w.sum(0)
+            w2 += np.einsum("pn,pn->n", w, w)
+        n_eff = w1**2 / np.maximum(w2, 1e-300)
+    few = np.nonzero((n_eff > 0) & (n_eff < MIN_PIXELS))[0]  # (0: a column without effect)
+    if not few.size:
+        return {}
+    # (seldom: a pass over the few columns, each pixel's share of their variance)
+    w = np.concatenate([np.einsum("pcn,pcn->pn", jb[..., few], jb[..., few])
+                        for _, _, jb in _chunks(J, pixels, bread)])
+    share = w / np.maximum(w.sum(0), 1e-300)
+    out = {}
+    for k, j in enumerate(few):
+        big = np.nonzero(share[:, k] >= GLINT_SHARE)[0]
+        out[int(j)] = (float(n_eff[j]), [int(p) for p in big[np.argsort(-share[big, k],
+                                                                      kind="stable")]])
     return out
-
-
-#: ``few_pixels``' last (J, pixels, result): a fit asks twice of the same Jacobian
-#: (``_glints`` and the report), 5 ms each at 256^2.
-_FEW: list = []
 
 
 #: ``few_pixels``: a coordinate with fewer effective pixels than this rests on one or

@@ -277,14 +277,13 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
             "hac_over_stat_max": float(np.sqrt(np.max(
                 np.diag(cov_hac) / np.maximum(np.diag(cov_stat), 1e-300))))}
     # (A noise_sigma given is the pixel's noise too: V_stat holds for it.)
-    # (J, not Js: the shares do not depend on the coordinates' scales, and _glints
-    # asked of this J already)
-    few = _adequacy.few_pixels(J, len(pix)) if problem.noise_sigma is None else {}
+    few = (_adequacy.few_pixels(Js, len(pix), gram, n_eff) if problem.noise_sigma is None
+           else {})
     if few:
         names, width = spec.coordinates(), problem.renderer.scene.width
-        info["few_pixels"] = {names[j]: {"effective_pixels": n_eff, "row": int(pix[p] // width),
+        info["few_pixels"] = {names[j]: {"effective_pixels": n_j, "row": int(pix[p] // width),
                                          "column": int(pix[p] % width)}
-                              for j, (n_eff, (p, *_)) in few.items()}
+                              for j, (n_j, (p, *_)) in few.items()}
     t0 = time.perf_counter()
     rows, share = data.geometry.kept("finer rows", lambda: _discretisation.sample_rows(
         _adequacy.pixel_regions(data.geometry), problem.renderer.scene))
