@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from skies import one_texel_sun
 
 import fitter
 from fitter import pipeline
@@ -218,19 +219,9 @@ def test_a_fit_stopped_in_the_dielectric_corner_is_solved_again_inside():
 
 
 def _one_texel_sun(path, row: int, col: int):
-    """A 128x64 sky (a blue gradient over a dark ground) with a one-texel sun
-    (2.8 degrees, ~2000 times the sky) at (row, col)."""
-    from fitter.imageio import write_image
-
-    h, w = 64, 128
-    y = (np.arange(h) + 0.5) / h
-    sky = np.empty((h, w, 3))
-    sky[:] = np.stack([0.3 + 0.5 * (1 - y), 0.4 + 0.5 * (1 - y), 0.6 + 0.6 * (1 - y)], -1)[:, None]
-    sky[y > 0.5] = [0.15, 0.12, 0.1]
-    sky[row, col] = [2000.0, 1900.0, 1700.0]
-    write_image(str(path), sky)
-    return fitter.Scene(width=64, height=64, supersampling=4, environment=fitter.Environment(
-        type="envmap", file=str(path)))
+    """The gold tests' sky: a blue gradient over a dark ground, the sun at (row, col)."""
+    return one_texel_sun(path, row, col, [0.3, 0.4, 0.6], [0.5, 0.5, 0.6], [0.15, 0.12, 0.1],
+                         [2000.0, 1900.0, 1700.0])
 
 
 GOLD_005 = {"torrance_sparrow.m": 0.05, "torrance_sparrow.eta": [0.18, 0.42, 1.37],

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from skies import one_texel_sun
 
 import fitter
 from fitter.fit import _adequacy
@@ -369,17 +370,9 @@ def test_a_glint_is_left_out_and_the_others_recover_the_truth(tmp_path, material
     converged and identifiable. The glint and its neighbours are now left out
     and the fit refit from the others (``_glints``). Reference: the truth
     Mitsuba rendered."""
-    from fitter.imageio import write_image
-
-    h, w = 64, 128
-    y = (np.arange(h) + 0.5) / h
-    sky = np.empty((h, w, 3))
-    sky[:] = (0.3 + 0.7 * (1.0 - y))[:, None, None] * np.array([0.5, 0.7, 1.0])
-    sky[y > 0.5] = [0.2, 0.15, 0.1]
-    sky[16, 76] = [2000.0, 1900.0, 1800.0]
-    write_image(str(tmp_path / "sky.exr"), sky)
-    scene = fitter.Scene(width=64, height=64, supersampling=4, environment=fitter.Environment(
-        type="envmap", file=str(tmp_path / "sky.exr")))
+    blue = np.array([0.5, 0.7, 1.0])  # (0.3 + 0.7 (1 - v)) blue
+    scene = one_texel_sun(tmp_path / "sky.exr", 16, 76, 0.3 * blue, 0.7 * blue,
+                          [0.2, 0.15, 0.1], [2000.0, 1900.0, 1800.0])
     target = np.asarray(fitter.mitsuba.render(scene, material, truth, spp=4096, seed=0))
     r = fitter.fit(target, scene, material, init=init or None)
     assert r.status == "converged" and not r.unidentifiable, (r.message, r.warnings)
