@@ -81,11 +81,15 @@ def derive(material: Material, result, variance=None) -> tuple[dict[str, Any], l
         values = lobe.derived(p, opts)
         free = [k for k in p if f"{lobe.name}.{k}" in result.free
                 and f"{lobe.name}.{k}" not in result.unidentifiable]
-        cov = _cov(result, [f"{lobe.name}.{k}" for k in free]) if free else None
+        # (an input without a standard error leaves the quantity without one)
+        stated = bool(free) and all(result.stderr.get(f"{lobe.name}.{k}") is not None
+                                    for k in free)
+        cov = (_cov(result, [f"{lobe.name}.{k}" for k in free])
+               if stated and variance is None else None)
         for name, value in values.items():
             value = np.asarray(value, dtype=float)
             stderr = None
-            if cov is not None and variance is not None:
+            if stated and variance is not None:
                 def q(full, name=name):
                     return lobe.derived({k: full.get(f"{lobe.name}.{k}", v)
                                          for k, v in p.items()}, opts)[name]

@@ -183,7 +183,8 @@ def _derived(p, opts):
     return {"F0": conductor_f0(p["eta"], p["k"])}
 
 
-#: eta of ``_interior``'s point: the conductor's default start, on the metal branch.
+#: eta of ``_interior``'s point, on the metal branch as the default start is (its k is
+#: F0's inverse at eta = 1 only).
 INTERIOR_ETA = 1.0
 
 

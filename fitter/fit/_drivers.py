@@ -304,9 +304,8 @@ def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
                       identifiability=identifiability, t_start=time.perf_counter(),
                       t_compile=t_compile, starts=[], refit=False,
                       jr=(r_factor(R[b]), np.asarray(r[b], dtype=np.float64)))
-        # became unidentifiable, out of steps short of a box edge, or resting on a
-        # glint (``_glints``): refit alone
-        # ... or in a corner of the box (``_corner``)
+        # became unidentifiable, out of steps short of a box edge, resting on a glint
+        # (``_glints``) or in a corner of the box (``_corner``): refit alone
         if identifiability and (res is None or _edge.candidate(problem.spec, res)
                                 or "few_pixels" in res.adequacy.get("blocks", {})
                                 or _corner.interior_start(problem.spec, zs[b],

@@ -12,6 +12,8 @@ import time
 
 import numpy as np
 
+from ..bsdf.derived import inputs
+from ..material import lobe_params
 from ._covariance import covariance, fit_coordinates, residual_variance
 from ._problem import Spec, blocks_of, format_value, frame
 
@@ -151,9 +153,6 @@ def known_valley(spec: Spec, along: list[str], values: dict) -> bool:
     report already names, with the quantity the image does determine, which
     several starts would only walk (measured: gold under a sky, 64^2, four
     starts 100 s, each 150-200 steps along it, none lower in cost)."""
-    from ..bsdf.derived import inputs
-    from ..material import lobe_params
-
     if not along:
         return False
     named = set()
