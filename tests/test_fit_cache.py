@@ -115,3 +115,33 @@ def test_a_new_trace_removes_the_traces_other_sources_left(tmp_path):
     run_fit(tmp_path)
     assert not any(path.exists() for path in stale) and all(path.exists() for path in kept)
     assert sorted(tmp_path.glob("fitter-trace-*.jaxexport"))  # this run's own
+
+
+#: ``FIT`` under a sky with a one-texel sun (an env-lit fit: sun cells in its data).
+FIT_SUN = FIT.replace(
+    """scene = fitter.Scene(width=16, height=16, supersampling=1,
+                     lights=(fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),))""",
+    f"""sys.path.insert(0, {str(ROOT / "tests")!r})
+from skies import one_texel_sun
+scene = one_texel_sun(sys.argv[1] + "/../sky.exr", 20, 40, [0.3, 0.4, 0.6], [0.5, 0.5, 0.6],
+                      [0.15, 0.12, 0.1], [2000.0, 1900.0, 1700.0], size=24)""")
+
+
+def test_an_env_lit_fit_with_a_sun_traces_nothing_when_repeated(tmp_path):
+    # The sun's cells (``SunCells``) are part of the solve's data: its trace must
+    # serialise them too, or every repeated env-lit fit traces its solve again (~1 s).
+    assert FIT_SUN != FIT
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+
+    def lines():
+        proc = subprocess.run([sys.executable, "-c", FIT_SUN, str(cache)], check=True,
+                              env=env, cwd=ROOT, timeout=300, capture_output=True, text=True)
+        return dict(ln.split(": ", 1) for ln in proc.stdout.splitlines() if ": " in ln)
+
+    first = lines()
+    assert int(first["traced"]) >= 3
+    again = lines()
+    assert int(again["traced"]) == 0
+    assert json.loads(again["result"]) == json.loads(first["result"])

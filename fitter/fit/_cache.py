@@ -24,9 +24,10 @@ from ..bsdf.base import Cosines
 from ..compilation_cache import active_dir, remove_stale, sources_fingerprint, store_atomically
 from ..environment import EnvData
 from ..geometry import Geometry
+from ..suncells import SunCells
 from ._problem import Data
 
-for _cls in (Data, Geometry, Cosines, EnvData):
+for _cls in (Data, Geometry, Cosines, EnvData, SunCells):
     export.register_namedtuple_serialization(_cls, serialized_name=f"fitter.{_cls.__name__}")
 
 
