@@ -20,7 +20,7 @@ import pytest
 from skies import one_texel_sun
 
 import fitter
-from fitter.fit import _adequacy
+from fitter.fit import _adequacy, _verdict
 from fitter.report import fit_badge, mitsuba_badge
 
 LIGHTS = (fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),)
@@ -68,6 +68,49 @@ def test_white_noise_target_has_no_systematic_part():
     d = r.to_dict()
     assert set(d["stderr_stat"]) == set(d["stderr"]) == set(d["stderr_disc"])
     assert "adequacy" in d
+
+
+def test_white_residual_with_a_large_discretisation_part_is_not_called_structured():
+    # The model's own render with white noise 1e-4 (48^2, 2 x 2 samples): refined to
+    # 4 x 4 the fit would move rho_d by ~11 statistical errors (stderr_disc), while
+    # the residual is white (neighbour correlation ~0, no block excess). The warning
+    # said "the residual is spatially structured (at the rim (0.64 times the noise
+    # level ...))" and the report's badge turned amber.
+    clean = np.asarray(fitter.render(GLOSSY, SCENE))
+    target = clean + np.random.default_rng(1).normal(0.0, 1e-4, clean.shape)
+    r = fitter.fit(target, SCENE, "lambert+torrance_sparrow", noise_sigma=1e-4)
+    assert r.status == "converged", r.message
+    assert abs(r.adequacy["neighbour_correlation"]) < 0.1
+    disc = max(np.max(np.asarray(r.stderr_disc[k]) / np.asarray(r.stderr_stat[k]))
+               for k in r.stderr)
+    assert disc > _adequacy.SYS_WARN  # the case the warning is for
+    assert not any("spatially structured" in w for w in r.warnings), r.warnings
+    assert [w for w in r.warnings if w.startswith("the stated errors are mostly the model's "
+                                                  "own discretisation")], r.warnings
+    assert fit_badge(r)[0] == "CONVERGED"
+
+
+@pytest.mark.parametrize("structured,disc,expected", [
+    (4.0, 1.0, "the residual is spatially structured"),
+    (1.0, 4.0, "the stated errors are mostly the model's own discretisation"),
+    (2.5, 2.5, "the residual is spatially structured"),  # each below 3, together above
+    (2.0, 2.0, None),  # together 2.8: below SYS_WARN
+])
+def test_mostly_systematic_errors_name_their_larger_source(structured, disc, expected):
+    # Two coordinates, statistical errors 1 and 2; the first carries the parts
+    # (added in quadrature), the second none.
+    stat = np.array([1.0, 2.0])
+    sd_disc = np.array([disc, 0.0])
+    sd_sys = np.hypot(np.array([structured, 0.0]), sd_disc)
+    regions = {"rim": {"pixels": 10, "rmse_over_noise": 2.0, "energy_share": 0.5}}
+    text = _verdict._systematic_warning({"regions": regions}, stat, sd_sys, sd_disc)
+    if expected is None:
+        assert text is None
+    else:
+        assert text.startswith(expected), text
+        # the structure's total systematic part, or the discretisation's own
+        said = np.hypot(structured, disc) if structured >= disc else disc
+        assert f"up to {said:.3g} times" in text
 
 
 def test_regions_follow_the_geometry():
