@@ -147,8 +147,9 @@ def _headline(ax, outcome: Outcome, title: str) -> None:
 
 def fit_badge(res) -> tuple[str, str]:
     """(label, colour) of the fit's verdict: a fit whose residual shows the lobes
-    cannot explain the image says so; a converged fit with a structured residual
-    (its stated errors mostly systematic) is amber."""
+    cannot explain the image says so; a converged fit whose stated errors are
+    mostly systematic is amber, naming the larger part: a structured residual or
+    the model's own discretisation (``fit._verdict``'s warnings)."""
     if "cannot explain the image" in res.message:
         return f"MODEL CANNOT EXPLAIN THE IMAGE ({res.status})", BAD
     if "likely a clipped highlight" in res.message:
@@ -157,6 +158,9 @@ def fit_badge(res) -> tuple[str, str]:
         return f"NOT CONVERGED ({res.status})", BAD
     if any(w.startswith("the residual is spatially structured") for w in res.warnings):
         return "CONVERGED, STRUCTURED RESIDUAL", WARN
+    if any(w.startswith("the stated errors are mostly the model's own discretisation")
+           for w in res.warnings):
+        return "CONVERGED, ERRORS MOSTLY DISCRETISATION", WARN
     return "CONVERGED", GOOD
 
 

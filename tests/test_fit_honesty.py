@@ -75,7 +75,7 @@ def test_white_residual_with_a_large_discretisation_part_is_not_called_structure
     # 4 x 4 the fit would move rho_d by ~11 statistical errors (stderr_disc), while
     # the residual is white (neighbour correlation ~0, no block excess). The warning
     # said "the residual is spatially structured (at the rim (0.64 times the noise
-    # level ...))" and the report's badge turned amber.
+    # level ...))" and the report's badge "STRUCTURED RESIDUAL".
     clean = np.asarray(fitter.render(GLOSSY, SCENE))
     target = clean + np.random.default_rng(1).normal(0.0, 1e-4, clean.shape)
     r = fitter.fit(target, SCENE, "lambert+torrance_sparrow", noise_sigma=1e-4)
@@ -87,7 +87,7 @@ def test_white_residual_with_a_large_discretisation_part_is_not_called_structure
     assert not any("spatially structured" in w for w in r.warnings), r.warnings
     assert [w for w in r.warnings if w.startswith("the stated errors are mostly the model's "
                                                   "own discretisation")], r.warnings
-    assert fit_badge(r)[0] == "CONVERGED"
+    assert fit_badge(r)[0] == "CONVERGED, ERRORS MOSTLY DISCRETISATION"
 
 
 @pytest.mark.parametrize("structured,disc,expected", [
