@@ -335,13 +335,26 @@ def env_lights(env_type: str, image, constant: np.ndarray,
                      detail)
 
 
+def _black_map(env, base_dir) -> bool:
+    """Whether the envmap of ``env`` is 0 in every texel (False where it cannot be read)."""
+    from .environment import load_environment
+
+    try:
+        return not np.any(np.asarray(load_environment(env, base_dir).image) > 0)
+    except Exception:  # noqa: BLE001 (the fit's own read names the problem)
+        return False
+
+
 def lit_by_environment(scene, material) -> bool:
     """Whether the scene's environment lights some opaque (brdf) lobe of ``material``."""
     return scene.environment.type != "black" and bool(material.opaque)
 
 
-def unlit(scene, material) -> str | None:
-    """Why the material's opaque lobes get no light in ``scene`` (naming the keys), or None."""
+def unlit(scene, material, base_dir: str | None = None) -> str | None:
+    """Why the material's opaque lobes get no light in ``scene`` (naming the keys), or None.
+    An envmap is read (``environment.load_environment``, kept for the fit) where no
+    light shines: a map black in every texel lights nothing either; one that cannot
+    be read is left to the read that names the problem."""
     opaque = material.opaque
     if not opaque:
         return None
@@ -350,14 +363,16 @@ def unlit(scene, material) -> str | None:
     if any(max(p) > 0 for p in power):
         return None
     env = scene.environment
-    if env.type == "envmap" and env.scale > 0:
-        return None  # an all-black map is caught when it is read
+    if env.type == "envmap" and env.scale > 0 and not _black_map(env, base_dir):
+        return None
     if env.type == "constant" and env.scale > 0 and max(env.radiance) > 0:
         return None
     lights = ("scene.lights is empty" if not scene.lights else
               "every scene.lights[i].intensity/irradiance is zero")
     env_text = {"black": 'scene.environment.type = "black"',
                 "constant": "scene.environment.radiance (x scale) is zero",
-                "envmap": "scene.environment.scale is zero"}[env.type]
+                "envmap": ("scene.environment.scale is zero" if not env.scale > 0 else
+                           f"scene.environment.file {env.file!r} is black (no texel above 0)")
+                }[env.type]
     return (f"the opaque lobe(s) {opaque} get no light: {lights} and {env_text}; "
             "add a light or an environment")

@@ -190,7 +190,7 @@ def preflight(job: Job) -> None:
     from .envlight import unlit
     from .serialize import ConfigError
 
-    reason = unlit(job.scene, job.material)
+    reason = unlit(job.scene, job.material, job.base_dir)
     if reason:
         raise ConfigError(f"{job.path}: {reason}")
     limits.check_scene("fit", job.scene, job.material, where=job.path, base_dir=job.base_dir,

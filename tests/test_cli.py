@@ -320,6 +320,25 @@ def test_bad_envmap_exits_2_naming_the_file_and_writes_nothing(small, tmp_path, 
     assert not (tmp_path / "out").exists() and not (tmp_path / "image.exr").exists()
 
 
+def test_black_envmap_without_lights_exits_2_before_any_fit(small, tmp_path, capsys):
+    # An envmap black in every texel and no light: the fit ran ~3 s to "every free
+    # parameter is held" (exit 3); nothing there lights the opaque lobes.
+    probe = str(tmp_path / "black.exr")
+    imageio.write_image(probe, np.zeros((16, 32, 3)))
+    data = json.loads(json.dumps(SMALL))
+    data["scene"]["lights"] = []
+    data["scene"]["environment"] = {"type": "envmap", "file": probe}
+    data["fit"]["target"] = os.path.join(os.path.dirname(small), "target.exr")
+    config = tmp_path / "env.toml"
+    config.write_text(dumps_toml(data))
+    code, stdout, err = _run(capsys, "fit", config, "--out", tmp_path / "out" / "res")
+    assert code == 2
+    assert stdout == "" and err.count("\n") == 1 and "Traceback" not in err
+    for word in ("scene.lights is empty", "scene.environment.file", probe, "black"):
+        assert word in err, (word, err)
+    assert not (tmp_path / "out").exists()
+
+
 def _config_with(folder, **fit):
     data = json.loads(json.dumps(SMALL))
     data["fit"].update(fit)

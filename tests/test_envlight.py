@@ -182,6 +182,26 @@ def test_unlit_opaque_lobes_are_named():
     assert envlight.unlit(SMALL, Material.from_params({"mirror.rho_m": 0.5})) is None
 
 
+def test_a_black_envmap_lights_nothing(tmp_path):
+    # (the CLI refuses such a config before fitting: tests/test_cli.py; in Python a
+    # fit of it returns a failed result with every parameter held)
+    from fitter.imageio import write_image
+
+    mat = Material.from_params({"lambert.rho_d": 0.5})
+    black = np.zeros((8, 16, 3))
+    write_image(str(tmp_path / "black.exr"), black)
+    scene = SMALL.replace(environment=Environment(type="envmap", file=str(tmp_path / "black.exr")))
+    why = envlight.unlit(scene, mat)
+    assert "scene.environment.file" in why and "black" in why, why
+    black[3, 5] = 0.01  # one texel of light is light
+    write_image(str(tmp_path / "one.exr"), black)
+    assert envlight.unlit(scene.replace(environment=Environment(
+        type="envmap", file=str(tmp_path / "one.exr"))), mat) is None
+    # unreadable: left to the read, which names the problem
+    assert envlight.unlit(scene.replace(environment=Environment(
+        type="envmap", file=str(tmp_path / "missing.exr"))), mat) is None
+
+
 @pytest.fixture(scope="module")
 def sun_probe(tmp_path_factory):
     """A 32 x 16 map with a sun far smaller than one texel (area-weighted into one texel)."""
