@@ -304,6 +304,10 @@ class Lobe:
             bool array of its channels}): a point inside the box on the valley
             of nearly equal images to solve again from (``fitter.fit._corner``;
             a conductor's eta, k of the same F0). None or {}: none.
+        complex_index: ``complex_index(opts) -> (real, imaginary)``, the names
+            of the RGB parameters that are a complex index of refraction under
+            ``opts`` (a conductor's eta, k), or None: the fit solves such a
+            pair along its circles of equal F0 (``fitter.fit._valley``).
         transmissive: light passes through the sphere (refraction), so what
             the lobe shows depends on the sphere's interior.
         doc: the model in one line (the README's lobe table shows it).
@@ -337,6 +341,7 @@ class Lobe:
         default_factory=dict, compare=False)
     derived: Callable[[dict, dict], dict] | None = None
     interior: Callable[[dict, dict, dict], dict] | None = None
+    complex_index: Callable[[dict], tuple | None] | None = None
 
     def params_for(self, opts: Mapping[str, Any]) -> tuple[Param, ...]:
         """The parameters under options ``opts`` (missing options: their defaults)."""

@@ -251,6 +251,7 @@ LOBE = Lobe(
     mitsuba=MitsubaMapping(_mitsuba, plugins={"fitter_torrance_sparrow": _plugin}),
     derived=_derived,
     interior=_interior,
+    complex_index=lambda opts: ("eta", "k") if opts.get("fresnel") == "conductor" else None,
     hints=Hints(
         points=(*(Point(f"ts_{g}-m{m:g}", {"m": m, "eta": 4.0, "rho_s": 1.0}, {"geometry": g})
                   for g in ("v_groove", "smith") for m in (0.01, 0.2, 1.0)),

@@ -15,6 +15,7 @@ from .._keep import hold
 from .._math import to_device
 from ..blasthreads import catch_up
 from ..compilation_cache import FAST_COMPILE
+from . import _valley
 from ._cache import compile_cached, lower_cached
 from ._problem import Spec, residuals
 from ._solvers import make_solver, result_code
@@ -151,28 +152,37 @@ def best_start(costs, zs, xp=np):
 def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps: int):
     """Compiled entry: starts (S, n) -> (z, code, steps, cost) per start, the
     best start's index, and ``jacobian_r`` there (the diagnostics)."""
-    def fn(z, data):
-        return residuals(z, data, spec)
+    # A conductor's eta, k are solved along their circles of equal F0 (``_valley``):
+    # the solver's coordinates w, the fit's z = to_z(w) everywhere else.
+    chs = _valley.charts(spec)
+
+    def fn(w, data):
+        return residuals(_valley.to_z(w, chs), data, spec)
 
     def one(z0, data):
         # optimistix only when tracing (0.5 s to import): a cached trace does without it
         import optimistix as optx
 
         solver = make_solver(solver_name, rtol, atol)
-        sol = optx.least_squares(fn, solver, z0, args=data, max_steps=max_steps, throw=False)
+        sol = optx.least_squares(fn, solver, _valley.to_w(z0, chs), args=data,
+                                 max_steps=max_steps, throw=False)
+        z = _valley.to_z(sol.value, chs)
         info = getattr(sol.state, "f_info", None)
         # optimistix's solver state is not public API: anything else falls back.
         residual_jac = getattr(getattr(optx, "FunctionInfo", None), "ResidualJac", ())
         if residual_jac and isinstance(info, residual_jac):
             # Gauss-Newton family: the solver's last accepted linearisation is at
-            # sol.value; materialising it costs n cheap tangents, not a new Jacobian.
+            # sol.value; materialising it costs n cheap tangents, not a new Jacobian
+            # (in w: times dw/dz, n x n).
             r, J = info.residual, info.jac.as_matrix()
+            if chs:
+                J = J @ jax.jacfwd(lambda v: _valley.to_w(v, chs))(z)
         else:
-            J, r = jacobian_full(spec, sol.value, data)
+            J, r = jacobian_full(spec, z, data)
         # The whole J too: the covariance's block sandwich needs its rows
         # (``jac_full``), and returning it spares a linearisation after the fit.
         jr = (jnp.linalg.qr(J, mode="r") if J.dtype == jnp.float64 else J, r, J)
-        return (sol.value, result_code(sol.result), sol.stats["num_steps"],
+        return (z, result_code(sol.result), sol.stats["num_steps"],
                 0.5 * jnp.sum(r * r), jr)
 
     def many(z0s, data):

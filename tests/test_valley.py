@@ -1,0 +1,90 @@
+"""The solver's coordinates along a conductor's circles of equal F0
+(``fitter.fit._valley``): references from the Fresnel equations at normal
+incidence, F0 = ((eta - 1)^2 + k^2) / ((eta + 1)^2 + k^2)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+import fitter
+from fitter import transforms
+from fitter.bsdf.registry import LOBES
+from fitter.fit import _setup, _valley
+
+ETA_BOX, K_BOX = (1e-2, 10.0), (1e-3, 20.0)
+CHART = _valley.Chart(slice(0, 3), slice(3, 6), ETA_BOX, K_BOX)
+#: A point moved off an interval's edge (``_valley.EDGE``) moves k near its least
+#: value by up to this, relative (the interval of the angle is wide there).
+EDGE_MOVE = 0.05
+
+
+def _f0(n, k):
+    return ((n - 1) ** 2 + k**2) / ((n + 1) ** 2 + k**2)
+
+
+def _z(n, k):
+    return jnp.asarray(np.concatenate([transforms.to_unconstrained("log", n, *ETA_BOX),
+                                       transforms.to_unconstrained("log", k, *K_BOX)]))
+
+
+def _user(z):
+    z = np.asarray(z)
+    return (transforms.to_user("log", z[:3], *ETA_BOX), transforms.to_user("log", z[3:], *K_BOX))
+
+
+def test_a_conductor_fit_has_one_chart_and_a_dielectric_none():
+    scene = fitter.Scene(width=8, height=8, supersampling=1,
+                         lights=(fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),))
+    target = np.full((1, 8, 8, 3), 0.1)
+    conductor = _setup.Problem.make(target, scene, "torrance_sparrow",
+                                    fixed={"torrance_sparrow.fresnel": "conductor"})
+    (c,) = _valley.charts(conductor.spec)
+    assert (c.real_box, c.imag_box) == (ETA_BOX, K_BOX)
+    assert _valley.charts(_setup.Problem.make(target, scene, "torrance_sparrow").spec) == ()
+    held_k = _setup.Problem.make(target, scene, "torrance_sparrow", fixed={
+        "torrance_sparrow.fresnel": "conductor", "torrance_sparrow.k": 3.0})
+    assert _valley.charts(held_k.spec) == ()  # eta alone: no valley
+    assert LOBES["torrance_sparrow"].complex_index({"fresnel": "conductor"}) == ("eta", "k")
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=st.lists(st.floats(np.log(ETA_BOX[0]), np.log(ETA_BOX[1])), min_size=3, max_size=3),
+       k=st.lists(st.floats(np.log(K_BOX[0]), np.log(K_BOX[1])), min_size=3, max_size=3))
+def test_the_coordinates_go_back_to_the_same_eta_and_k(n, k):
+    n, k = np.exp(n), np.exp(k)
+    # (F0 below 1e-4, eta ~ 1 and k ~ 0, nothing reflected: there F0's own interval
+    # edge, EDGE of F0's range, is a large relative move)
+    assume(np.all(_f0(n, k) > 1e-4))
+    back_n, back_k = _user(_valley.to_z(_valley.to_w(_z(n, k), (CHART,)), (CHART,)))
+    tol = 1e-6 + EDGE_MOVE * (k < 2 * K_BOX[0])
+    assert np.all(np.abs(back_n / n - 1) <= tol) and np.all(np.abs(back_k / k - 1) <= tol), (
+        n, k, back_n, back_k)
+
+
+def test_gold_goes_back_exactly_and_the_angle_keeps_f0():
+    n, k = np.array([0.143, 0.3753, 1.442]), np.array([3.983, 2.3856, 1.6034])
+    w = _valley.to_w(_z(n, k), (CHART,))
+    back = _user(_valley.to_z(w, (CHART,)))
+    np.testing.assert_allclose(back[0], n, rtol=1e-9)
+    np.testing.assert_allclose(back[1], k, rtol=1e-9)
+    for shift in (-3.0, -0.5, 0.7, 4.0):  # along the angle: another (eta, k) of the same F0
+        n2, k2 = _user(_valley.to_z(w.at[3:].add(shift), (CHART,)))
+        np.testing.assert_allclose(_f0(n2, k2), _f0(n, k), rtol=1e-9)
+        assert np.all(np.abs(n2 - n) > 1e-4)
+        assert np.all((n2 >= ETA_BOX[0]) & (n2 <= ETA_BOX[1]) & (k2 >= K_BOX[0]) & (k2 <= K_BOX[1]))
+
+
+@settings(max_examples=40, deadline=None)
+@given(w=st.lists(st.floats(-40.0, 40.0), min_size=6, max_size=6))
+def test_every_solver_point_is_inside_the_boxes_with_a_finite_jacobian(w):
+    w = jnp.asarray(w)
+    z = _valley.to_z(w, (CHART,))
+    n, k = _user(z)
+    assert np.all(np.isfinite(np.asarray(z)))
+    assert np.all((n >= ETA_BOX[0] * (1 - 1e-9)) & (n <= ETA_BOX[1] * (1 + 1e-9)))
+    assert np.all((k >= K_BOX[0] * (1 - 1e-9)) & (k <= K_BOX[1] * (1 + 1e-9)))
+    assert np.all(np.isfinite(np.asarray(jax.jacfwd(lambda v: _valley.to_z(v, (CHART,)))(w))))
