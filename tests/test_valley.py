@@ -88,3 +88,35 @@ def test_every_solver_point_is_inside_the_boxes_with_a_finite_jacobian(w):
     assert np.all((n >= ETA_BOX[0] * (1 - 1e-9)) & (n <= ETA_BOX[1] * (1 + 1e-9)))
     assert np.all((k >= K_BOX[0] * (1 - 1e-9)) & (k <= K_BOX[1] * (1 + 1e-9)))
     assert np.all(np.isfinite(np.asarray(jax.jacfwd(lambda v: _valley.to_z(v, (CHART,)))(w))))
+
+
+def test_narrowed_boxes_whose_arcs_split_keep_the_fits_coordinates():
+    # With k <= 1 and eta in [0.05, 5] the arc of one F0 leaves the boxes in its
+    # middle (k over 1) and comes back: two pieces, of which the solver's angle
+    # would reach one (42 % of random points there did not come back). Such
+    # bounds keep the fit's own coordinates; bounds whose arcs stay whole use the
+    # angle, and their points come back.
+    scene = fitter.Scene(width=8, height=8, supersampling=1,
+                         lights=(fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),))
+    target = np.full((1, 8, 8, 3), 0.1)
+    fixed = {"torrance_sparrow.fresnel": "conductor"}
+
+    def charts(eta, k):
+        return _valley.charts(_setup.Problem.make(
+            target, scene, "torrance_sparrow", fixed=fixed,
+            init={"torrance_sparrow.eta": np.sqrt(eta[0] * eta[1]),
+                  "torrance_sparrow.k": np.sqrt(k[0] * k[1])},
+            bounds={"torrance_sparrow.eta": eta, "torrance_sparrow.k": k}).spec)
+
+    assert charts((0.05, 5.0), (0.01, 1.0)) == ()
+    (c,) = charts((0.1, 0.9), (1.0, 4.0))
+    assert (c.real_box, c.imag_box) == ((0.1, 0.9), (1.0, 4.0))
+    c = c._replace(real=slice(0, 3), imag=slice(3, 6))  # (m is the spec's first coordinate)
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        n, k = (np.exp(rng.uniform(np.log(lo) + 0.01, np.log(hi) - 0.01, 3))
+                for lo, hi in (c.real_box, c.imag_box))
+        z = jnp.asarray(np.concatenate([transforms.to_unconstrained("log", n, *c.real_box),
+                                        transforms.to_unconstrained("log", k, *c.imag_box)]))
+        back = np.asarray(_valley.to_z(_valley.to_w(z, (c,)), (c,)))
+        np.testing.assert_allclose(back, np.asarray(z), rtol=1e-6, atol=1e-9)

@@ -205,6 +205,12 @@ def _interior(p, opts, at_edge):
     return {"eta": np.where(stuck, INTERIOR_ETA, eta), "k": np.where(stuck, k_new, k)}
 
 
+def _complex_index(opts):
+    """A conductor's eta + i k (``Lobe.complex_index``): solved along its circles of
+    equal F0 (``fitter.fit._valley``)."""
+    return ("eta", "k") if opts.get("fresnel") == "conductor" else None
+
+
 def _quadrature(p):
     """Half vectors about n within the cap where the Beckmann exponent > e^-40;
     the horizon cuts broad lobes (a kink), hence twice the nodes."""
@@ -251,7 +257,7 @@ LOBE = Lobe(
     mitsuba=MitsubaMapping(_mitsuba, plugins={"fitter_torrance_sparrow": _plugin}),
     derived=_derived,
     interior=_interior,
-    complex_index=lambda opts: ("eta", "k") if opts.get("fresnel") == "conductor" else None,
+    complex_index=_complex_index,
     hints=Hints(
         points=(*(Point(f"ts_{g}-m{m:g}", {"m": m, "eta": 4.0, "rho_s": 1.0}, {"geometry": g})
                   for g in ("v_groove", "smith") for m in (0.01, 0.2, 1.0)),

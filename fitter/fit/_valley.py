@@ -23,6 +23,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .. import transforms
 from ._problem import Spec
@@ -46,7 +47,8 @@ class Chart(NamedTuple):
 
 def charts(spec: Spec) -> tuple[Chart, ...]:
     """The complex indices (``Lobe.complex_index``) of ``spec`` whose two RGB
-    parameters are both fitted in log boxes; () where there is none."""
+    parameters are both fitted in log boxes whose arcs ``_angles`` covers
+    (``_one_side``); () where there is none."""
     blocks = {b.key: (b, sl) for b, sl in spec.slices()}
     out = []
     for lobe in spec.material.lobe_objects:
@@ -58,7 +60,9 @@ def charts(spec: Spec) -> tuple[Chart, ...]:
         if re is None or im is None or not (re.size == im.size == 3) or not (
                 re.transform == im.transform == "log"):
             continue
-        out.append(Chart(s_re, s_im, (re.lower, re.upper), (im.lower, im.upper)))
+        chart = Chart(s_re, s_im, (re.lower, re.upper), (im.lower, im.upper))
+        if _one_side(chart):
+            out.append(chart)
     return tuple(out)
 
 
@@ -67,32 +71,52 @@ def _f0(n, k):
 
 
 def _f0_box(c: Chart):
-    """F0's range in the boxes: from eta = 1 at the least k to the least eta at the most k."""
-    (a, _), (kc, kd) = c.real_box, c.imag_box
-    return kc * kc / (4.0 + kc * kc), float(_f0(a, kd))
+    """F0's range over the boxes: F0 rises with k, and in eta falls to its least at
+    eta = sqrt(1 + k^2) and rises beyond it; so the least k at the eta nearest that
+    point, the most k at an end of eta's box."""
+    (a, b), (kc, kd) = c.real_box, c.imag_box
+    least = _f0(min(max((1.0 + kc * kc) ** 0.5, a), b), kc)
+    return float(least), float(max(_f0(a, kd), _f0(b, kd)))
 
 
 def _circle(r):
     return (1.0 + r) / (1.0 - r), 2.0 * jnp.sqrt(r) / (1.0 - r)
 
 
-def _angles(c: Chart, big_r, rho):
-    """The interval (lo, hi) of phi (3,) whose points of the arc lie in the boxes:
-    k >= its least; eta within its box; k <= its most, on the arc's side of small
-    eta (a conductor's; the other lies beyond eta's box for the lobe's own boxes)
-    unless only the other side meets the rest."""
+def _bounds(c: Chart, big_r, rho, xp=jnp):
+    """(lo, hi) of phi where k >= its least and eta lies in its box, and the cut
+    of k <= its most (phi <= cut or phi >= pi - cut where it limits: kd < rho)."""
     (a, b), (kc, kd) = c.real_box, c.imag_box
-    asin = lambda x: jnp.arcsin(jnp.clip(x, -1.0 + _SAFE, 1.0 - _SAFE))  # noqa: E731
-    acos = lambda x: jnp.arccos(jnp.clip(x, -1.0 + _SAFE, 1.0 - _SAFE))  # noqa: E731
-    lo = jnp.maximum(asin(kc / rho), acos((b - big_r) / rho))
-    hi = jnp.minimum(jnp.pi - asin(kc / rho), acos((a - big_r) / rho))
-    limited = kd < rho  # then k <= kd: phi <= cut or phi >= pi - cut
-    cut = asin(kd / rho)
+    asin = lambda x: xp.arcsin(xp.clip(x, -1.0 + _SAFE, 1.0 - _SAFE))  # noqa: E731
+    acos = lambda x: xp.arccos(xp.clip(x, -1.0 + _SAFE, 1.0 - _SAFE))  # noqa: E731
+    lo = xp.maximum(asin(kc / rho), acos((b - big_r) / rho))
+    hi = xp.minimum(xp.pi - asin(kc / rho), acos((a - big_r) / rho))
+    return lo, hi, asin(kd / rho), kd < rho
+
+
+def _angles(c: Chart, big_r, rho):
+    """The interval (lo, hi) of phi (3,) whose points of the arc lie in the boxes,
+    on the arc's side of small eta where k's most cuts the arc in two (``charts``
+    makes sure the other side then lies outside eta's box)."""
+    lo, hi, cut, limited = _bounds(c, big_r, rho)
     upper = jnp.maximum(lo, jnp.pi - cut)
     small_eta = upper <= hi
     lo = jnp.where(limited & small_eta, upper, lo)
     hi = jnp.where(limited & ~small_eta, jnp.minimum(hi, cut), hi)
     return lo, jnp.maximum(hi, lo)
+
+
+def _one_side(c: Chart) -> bool:
+    """Whether, for every F0 of the boxes (a dense grid), the points of its arc in
+    the boxes are one interval of phi (so ``_angles`` reaches them all): true for
+    the lobe's own boxes; narrower ``bounds`` can leave two."""
+    r_lo, r_hi = _f0_box(c)
+    r = np.unique(np.concatenate([np.geomspace(max(r_lo, 1e-300), r_hi, 2000),
+                                  np.linspace(r_lo, r_hi, 2000)]))
+    big_r, rho = (1.0 + r) / (1.0 - r), 2.0 * np.sqrt(r) / (1.0 - r)
+    lo, hi, cut, limited = _bounds(c, big_r, rho, np)
+    both = (np.maximum(lo, np.pi - cut) <= hi) & (lo <= np.minimum(hi, cut))
+    return not np.any(limited & both)
 
 
 def _log_z(x, box):
