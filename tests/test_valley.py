@@ -75,7 +75,8 @@ def test_gold_goes_back_exactly_and_the_angle_keeps_f0():
         n2, k2 = _user(_valley.to_z(w.at[3:].add(shift), (CHART,)))
         np.testing.assert_allclose(_f0(n2, k2), _f0(n, k), rtol=1e-9)
         assert np.all(np.abs(n2 - n) > 1e-4)
-        assert np.all((n2 >= ETA_BOX[0]) & (n2 <= ETA_BOX[1]) & (k2 >= K_BOX[0]) & (k2 <= K_BOX[1]))
+        assert np.all((n2 >= ETA_BOX[0]) & (n2 <= ETA_BOX[1]))
+        assert np.all((k2 >= K_BOX[0]) & (k2 <= K_BOX[1]))
 
 
 @settings(max_examples=40, deadline=None)
@@ -120,3 +121,23 @@ def test_narrowed_boxes_whose_arcs_split_keep_the_fits_coordinates():
                                         transforms.to_unconstrained("log", k, *c.imag_box)]))
         back = np.asarray(_valley.to_z(_valley.to_w(z, (c,)), (c,)))
         np.testing.assert_allclose(back, np.asarray(z), rtol=1e-6, atol=1e-9)
+
+
+def test_a_float32_conductor_fit_converges_in_the_fits_own_coordinates():
+    # The circle's centre and radius cancel to a small eta (gold's red: 34.7 - 34.5),
+    # which float32 does not resolve: its Jacobian went NaN and the glint check raised
+    # (a traceback). float32 fits keep the fit's coordinates; F0 from the Fresnel
+    # equations at normal incidence.
+    scene = fitter.Scene(width=24, height=24, supersampling=2,
+                         lights=(fitter.PointLight((3.0, 4.0, 5.0), (50.0, 50.0, 50.0)),
+                                 fitter.PointLight((-4.0, 1.0, 3.0), (20.0, 20.0, 30.0))))
+    fixed = {"torrance_sparrow.fresnel": "conductor", "torrance_sparrow.geometry": "smith"}
+    n, k = np.array([0.143, 0.3753, 1.442]), np.array([3.983, 2.3856, 1.6034])
+    clean = np.asarray(fitter.render({"torrance_sparrow.m": 0.25, "torrance_sparrow.eta": n,
+                                      "torrance_sparrow.k": k, **fixed}, scene))
+    target = clean + np.random.default_rng(0).normal(0.0, 1e-3, clean.shape)
+    r = fitter.fit(target, scene, "torrance_sparrow", fixed=fixed, dtype="float32")
+    assert r.status == "converged", r.message
+    f0 = _f0(np.asarray(r.params["torrance_sparrow.eta"]),
+             np.asarray(r.params["torrance_sparrow.k"]))
+    np.testing.assert_allclose(f0, _f0(n, k), atol=0.005)

@@ -153,15 +153,19 @@ def _solve_fn(spec: Spec, solver_name: str, rtol: float, atol: float, max_steps:
     """Compiled entry: starts (S, n) -> (z, code, steps, cost) per start, the
     best start's index, and ``jacobian_r`` there (the diagnostics)."""
     # A conductor's eta, k are solved along their circles of equal F0 (``_valley``):
-    # the solver's coordinates w, the fit's z = to_z(w) everywhere else.
-    chs = _valley.charts(spec)
-
-    def fn(w, data):
-        return residuals(_valley.to_z(w, chs), data, spec)
+    # the solver's coordinates w, the fit's z = to_z(w) everywhere else. In float64
+    # only: a small eta is the difference of the circle's centre and radius (gold's
+    # red: 34.7 - 34.5), and float32 lost the fit (its Jacobian NaN).
+    charts = _valley.charts(spec)
 
     def one(z0, data):
         # optimistix only when tracing (0.5 s to import): a cached trace does without it
         import optimistix as optx
+
+        chs = charts if z0.dtype == jnp.float64 else ()
+
+        def fn(w, data):
+            return residuals(_valley.to_z(w, chs), data, spec)
 
         solver = make_solver(solver_name, rtol, atol)
         sol = optx.least_squares(fn, solver, _valley.to_w(z0, chs), args=data,
