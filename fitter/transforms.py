@@ -50,25 +50,37 @@ def to_user(kind: str, z, lo: float, hi: float):
     return lo + (hi - lo) * s
 
 
+def _array(x):
+    """(``x``, jax.numpy) for a JAX array or tracer (differentiable in a solve's
+    trace); (float64 NumPy ``x``, NumPy) for anything else."""
+    if isinstance(x, (jax.Array, jax.core.Tracer)):
+        return x, jnp
+    return np.asarray(x, dtype=np.float64), np
+
+
 def box_fraction(kind: str, x, lo: float, hi: float):
-    """Where x lies in [lo, hi], 0..1 (NumPy): linear, or in log for the log box.
+    """Where x lies in [lo, hi], 0..1 (NumPy, or JAX for JAX input): linear, or in
+    log for the log box.
 
     This is sigmoid(z), the fraction the transforms are built on."""
-    x = np.asarray(x, dtype=np.float64)
+    x, xp = _array(x)
     if _is_log(kind):
-        return np.log(np.maximum(x, lo) / lo) / np.log(hi / lo)
+        return xp.log(xp.maximum(x, lo) / lo) / np.log(hi / lo)
     return (x - lo) / (hi - lo)
 
 
 def logit(u):
-    """z with sigmoid(z) = u, for u in (0, 1) (NumPy): the inverse of the box fraction."""
-    u = np.asarray(u, dtype=np.float64)
-    return np.log(u) - np.log1p(-u)
+    """z with sigmoid(z) = u, for u in (0, 1) (NumPy, or JAX for JAX input): the
+    inverse of the box fraction."""
+    u, xp = _array(u)
+    return xp.log(u) - xp.log1p(-u)
 
 
 def to_unconstrained(kind: str, x, lo: float, hi: float, margin: float = EDGE):
-    """Coordinate z(x) (NumPy); x is moved ``margin`` of the range inside [lo, hi]."""
-    return logit(np.clip(box_fraction(kind, x, lo, hi), margin, 1.0 - margin))
+    """Coordinate z(x) (NumPy, or JAX for JAX input); x is moved ``margin`` of the
+    range inside [lo, hi]."""
+    xp = _array(x)[1]
+    return logit(xp.clip(box_fraction(kind, x, lo, hi), margin, 1.0 - margin))
 
 
 def derivative(kind: str, z, lo: float, hi: float):

@@ -103,7 +103,9 @@ def test_mostly_systematic_errors_name_their_larger_source(structured, disc, exp
     sd_disc = np.array([disc, 0.0])
     sd_sys = np.hypot(np.array([structured, 0.0]), sd_disc)
     regions = {"rim": {"pixels": 10, "rmse_over_noise": 2.0, "energy_share": 0.5}}
-    text = _verdict._systematic_warning({"regions": regions}, stat, sd_sys, sd_disc)
+    adequacy = {"regions": regions,  # (as ``_with_systematic`` leaves them)
+                 "blocks": {"discretisation": {"supersampling": [2, 4]}}}
+    text = _verdict._systematic_warning(adequacy, stat, sd_sys, sd_disc)
     if expected is None:
         assert text is None
     else:

@@ -141,3 +141,17 @@ def test_a_float32_conductor_fit_converges_in_the_fits_own_coordinates():
     f0 = _f0(np.asarray(r.params["torrance_sparrow.eta"]),
              np.asarray(r.params["torrance_sparrow.k"]))
     np.testing.assert_allclose(f0, _f0(n, k), atol=0.005)
+
+
+def test_the_fits_coordinates_of_jax_values_are_numpys():
+    # ``transforms.to_unconstrained`` serves the solver's map in JAX (traced,
+    # differentiable) and the fit's set-up in NumPy: the same coordinates.
+    for kind, box, x in (("log", ETA_BOX, [0.011, 0.5, 9.9]),
+                         ("box", (0.2, 0.9), [0.21, 0.5, 0.89])):
+        x = np.array(x)
+        z = transforms.to_unconstrained(kind, jnp.asarray(x), *box)
+        np.testing.assert_allclose(np.asarray(z), transforms.to_unconstrained(kind, x, *box),
+                                   rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(transforms.to_user(kind, z, *box)), x, rtol=1e-12)
+        g = jax.grad(lambda v: jnp.sum(transforms.to_unconstrained(kind, v, *box)))(jnp.asarray(x))
+        assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g) > 0)

@@ -26,11 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import transforms
+from ..bsdf.fresnel import conductor_f0
 from ._problem import Spec
 
-#: Fraction of an interval by which a point on its edge is moved inside (as
-#: ``transforms.EDGE``): the logit of an edge is infinite.
-EDGE = transforms.EDGE
 #: asin and acos arguments are kept this far inside [-1, 1] (their derivatives
 #: are infinite at the ends).
 _SAFE = 1e-12
@@ -66,17 +64,13 @@ def charts(spec: Spec) -> tuple[Chart, ...]:
     return tuple(out)
 
 
-def _f0(n, k):
-    return ((n - 1.0) ** 2 + k * k) / ((n + 1.0) ** 2 + k * k)
-
-
 def _f0_box(c: Chart):
     """F0's range over the boxes: F0 rises with k, and in eta falls to its least at
     eta = sqrt(1 + k^2) and rises beyond it; so the least k at the eta nearest that
     point, the most k at an end of eta's box."""
     (a, b), (kc, kd) = c.real_box, c.imag_box
-    least = _f0(min(max((1.0 + kc * kc) ** 0.5, a), b), kc)
-    return float(least), float(max(_f0(a, kd), _f0(b, kd)))
+    least = conductor_f0(min(max((1.0 + kc * kc) ** 0.5, a), b), kc)
+    return float(least), float(max(conductor_f0(a, kd), conductor_f0(b, kd)))
 
 
 def _circle(r):
@@ -119,41 +113,30 @@ def _one_side(c: Chart) -> bool:
     return not np.any(limited & both)
 
 
-def _log_z(x, box):
-    """The fit's coordinate of x in a log box (``transforms.to_unconstrained``, in JAX)."""
-    lo, hi = jnp.log(box[0]), jnp.log(box[1])
-    u = jnp.clip((jnp.log(x) - lo) / (hi - lo), EDGE, 1.0 - EDGE)
-    return jnp.log(u) - jnp.log1p(-u)
-
-
-def _logit(u):
-    u = jnp.clip(u, EDGE, 1.0 - EDGE)
-    return jnp.log(u) - jnp.log1p(-u)
-
-
 def to_z(w, chs: tuple[Chart, ...]):
     """The fit's coordinates z (n,) of solver coordinates w (n,)."""
     for c in chs:
-        r_lo, r_hi = _f0_box(c)
-        r = r_lo + (r_hi - r_lo) * jax.nn.sigmoid(w[c.real])
+        r = transforms.to_user("box", w[c.real], *_f0_box(c))
         big_r, rho = _circle(r)
         lo, hi = _angles(c, big_r, rho)
         phi = lo + (hi - lo) * jax.nn.sigmoid(w[c.imag])
         n, k = big_r + rho * jnp.cos(phi), rho * jnp.sin(phi)
-        w = w.at[c.real].set(_log_z(n, c.real_box)).at[c.imag].set(_log_z(k, c.imag_box))
+        w = w.at[c.real].set(transforms.to_unconstrained("log", n, *c.real_box)).at[
+            c.imag].set(transforms.to_unconstrained("log", k, *c.imag_box))
     return w
 
 
 def to_w(z, chs: tuple[Chart, ...]):
     """Solver coordinates w (n,) of the fit's coordinates z (n,) (``to_z``'s inverse
-    inside the boxes; a point on an interval's edge moved ``EDGE`` inside)."""
+    inside the boxes; a point on an interval's edge moved ``transforms.EDGE`` inside)."""
     for c in chs:
         n = transforms.to_user("log", z[c.real], *c.real_box)
         k = transforms.to_user("log", z[c.imag], *c.imag_box)
         r_lo, r_hi = _f0_box(c)
-        r = jnp.clip(_f0(n, k), r_lo, r_hi)
+        r = jnp.clip(conductor_f0(n, k), r_lo, r_hi)
         big_r, rho = _circle(r)
         lo, hi = _angles(c, big_r, rho)
-        z = z.at[c.real].set(_logit((r - r_lo) / (r_hi - r_lo))).at[c.imag].set(
-            _logit((jnp.arctan2(k, n - big_r) - lo) / jnp.maximum(hi - lo, 1e-300)))
+        u = (jnp.arctan2(k, n - big_r) - lo) / jnp.maximum(hi - lo, 1e-300)  # (may be 0)
+        z = z.at[c.real].set(transforms.to_unconstrained("box", r, r_lo, r_hi)).at[
+            c.imag].set(transforms.logit(jnp.clip(u, transforms.EDGE, 1.0 - transforms.EDGE)))
     return z

@@ -258,7 +258,8 @@ def _systematic_warning(adequacy: dict, sd_stat, sd_sys, sd_disc) -> str | None:
         return (f"the residual is spatially structured ({_adequacy.where(adequacy)}): the "
                 f"stated errors include a systematic part up to {total:.3g} times the "
                 "statistical one (stderr_sys, stderr_stat)")
-    k, k2 = adequacy.get("blocks", {}).get("discretisation", {}).get("supersampling", ("k", "2k"))
+    # (a systematic part comes with the blocks' entry: ``_with_systematic``)
+    k, k2 = adequacy["blocks"]["discretisation"]["supersampling"]
     return (f"the stated errors are mostly the model's own discretisation: rendered with "
             f"{k2} x {k2} sub-pixel samples instead of {k} x {k} (and its other quadratures "
             f"refined) the fit would move by up to {disc:.3g} times its statistical error "
