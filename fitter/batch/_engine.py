@@ -19,7 +19,7 @@ import time
 import uuid
 from typing import Any, Iterable, Sequence
 
-from ._jobs import BatchError, Entry, _one_line, finished, make_entries
+from ._jobs import BatchError, Entry, one_line, finished, make_entries
 from ._table import write_csv, write_figure
 from ._task import STATUSES, TOPIC, error_row, result_row, run_entry
 
@@ -115,7 +115,7 @@ def _check_folder(e: Entry, root: str) -> Entry:
     try:
         check_out(os.path.join(root, e.name))
     except OutputError as exc:
-        return dataclasses.replace(e, error=_one_line(exc))
+        return dataclasses.replace(e, error=one_line(exc))
     return e
 
 
@@ -137,7 +137,7 @@ def _client(scheduler: str | None, workers: int | None, todo: Sequence[Entry]):
             client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
         except (OSError, TimeoutError, ValueError) as exc:
             raise BatchError(f"--scheduler {scheduler}: no Dask scheduler answers within "
-                             f"{CONNECT_TIMEOUT_S} s ({_one_line(exc)}); start one with "
+                             f"{CONNECT_TIMEOUT_S} s ({one_line(exc)}); start one with "
                              "`dask scheduler` and workers with `dask worker ADDRESS`"
                              ) from None
         try:
@@ -314,7 +314,7 @@ def _row_of(fut, e: Entry) -> dict[str, Any]:
         return error_row(e, f"the worker processes running this job died {n + 1} times "
                             "(killed, crashed or out of memory); not retried again")
     except Exception as exc:  # noqa: BLE001 -- e.g. fitter missing on a remote worker
-        return error_row(e, f"{type(exc).__name__}: {_one_line(exc)}")
+        return error_row(e, f"{type(exc).__name__}: {one_line(exc)}")
 
 
 class _Progress:

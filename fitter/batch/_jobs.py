@@ -125,7 +125,7 @@ def _entry(index: int, item: Any, validate: bool | None) -> Entry:
         return Entry(index, label, job=job, target=target, key=resume_key(job, target),
                      memory=scene_bytes("fit", job.scene, job.material, job.base_dir))
     except (FitterError, OSError) as exc:
-        return Entry(index, label, error=_one_line(exc))
+        return Entry(index, label, error=one_line(exc))
 
 
 def _job_from_tuple(index: int, target, scene, material):
@@ -195,7 +195,9 @@ def write_key(folder: str, key: str, time_s: float) -> None:
         fh.write("\n")
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException) -> str:
+    """``exc`` as one line for a summary row: an OSError as "file: reason", else its
+    text (its type's name when it has none), whitespace collapsed."""
     text = str(exc) or type(exc).__name__
     if isinstance(exc, OSError) and exc.strerror:
         text = f"{exc.filename + ': ' if exc.filename else ''}{exc.strerror}"

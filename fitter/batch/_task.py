@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FitterError
-from ._jobs import Entry, _one_line, write_key
+from ._jobs import Entry, one_line, write_key
 
 #: Dask event topic of job starts (the client's progress display counts them);
 #: each batch adds its own id, so that batches sharing a cluster count their own.
@@ -59,9 +59,9 @@ def run_entry(entry: Entry, root: str | None, topic: str = TOPIC) -> dict[str, A
         row = result_row(entry, result, time.perf_counter() - t0)
         return row if root is not None else {**row, "out": ""}
     except (FitterError, OSError) as exc:
-        return error_row(entry, _one_line(exc), time.perf_counter() - t0)
+        return error_row(entry, one_line(exc), time.perf_counter() - t0)
     except Exception as exc:  # an internal fault of one job: reported, the batch goes on
-        return error_row(entry, f"internal error: {type(exc).__name__}: {_one_line(exc)}",
+        return error_row(entry, f"internal error: {type(exc).__name__}: {one_line(exc)}",
                          time.perf_counter() - t0)
 
 

@@ -33,9 +33,9 @@ for _cls in (Data, Geometry, Cosines, EnvData, SunCells):
 
 @functools.lru_cache(maxsize=1)
 def _source_fingerprint() -> str:
-    from ._solvers import _library_versions  # a trace holds their code and result codes
+    from ._solvers import library_versions  # a trace holds their code and result codes
 
-    return hashlib.sha256((jax.__version__ + _library_versions()
+    return hashlib.sha256((jax.__version__ + library_versions()
                            + sources_fingerprint()).encode()).hexdigest()
 
 

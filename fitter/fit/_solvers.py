@@ -105,7 +105,7 @@ def result_code(result):
     return code
 
 
-def _library_versions() -> str:
+def library_versions() -> str:
     """Versions of the solver libraries, which fix what a result code means."""
     from importlib import metadata
 
@@ -132,7 +132,7 @@ def outcome_table() -> dict[int, tuple[str, str]]:
     if folder:
         import hashlib
 
-        tag = hashlib.sha256(_library_versions().encode()).hexdigest()[:16]
+        tag = hashlib.sha256(library_versions().encode()).hexdigest()[:16]
         path = os.path.join(folder, f"fitter-outcomes-{tag}.json")
         try:
             with open(path, encoding="utf-8") as fh:
