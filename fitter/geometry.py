@@ -24,7 +24,6 @@ from .bsdf.base import UNLIT, Cosines, cosines
 from .camera import SceneError, camera_rays, film_samples
 from .compilation_cache import FAST_COMPILE
 from .environment import EnvData, lookup
-from .envlight import sky_sum
 from .scene import DirectionalLight, PointLight, Scene
 from .suncells import SunCells, sun_samples
 
@@ -50,29 +49,15 @@ def _miss_radiance(env_type: str, env: EnvData, d) -> np.ndarray:
     return out[:n].reshape(d.shape)
 
 
-@functools.partial(jax.jit, static_argnums=5)
-def _sky_irradiance(h, window, pos, c, rows, n: int):
-    """(n, 3) each active pixel's sky irradiance: ``sky_sum`` of the node weights
-    ``h`` per env sample, summed over the samples of each pixel ``rows`` (R,; -1:
-    padding). One executable (op by op, its dozen ops were compiled one by one
-    on every first run, ~0.5 s), left running: the set-up goes on (the fit's
-    tracing) while the sky table is computed."""
-    irr = jnp.where((rows >= 0)[:, None], sky_sum(h, window, pos, c), 0.0)
-    return jax.ops.segment_sum(irr, jnp.maximum(rows, 0), n)
+def _sky_irradiance(sky, rows, normal, weight, n: int) -> np.ndarray:
+    """(n, 3) each active pixel's sky irradiance: its env samples' E (``rows``
+    (R,), unit ``normal`` (R, 3)) by ``fitter.irradiance``, times their weights (R,),
+    summed per pixel. The grid of E is kept with the sky's map (one per map)."""
+    from .irradiance import irradiance, irradiance_grid
 
-
-def _host_irradiance(h, window, pos, c, rows, n: int):
-    """``_sky_irradiance`` of a table tabulated on the host (``sky_table``'s small
-    ones), in NumPy: no executable compiled for its shapes."""
-    irr = np.where((rows >= 0)[:, None], sky_sum(h, window, pos, c, xp=np), 0.0)
-    out = np.zeros((n, 3))
-    np.add.at(out, np.maximum(rows, 0), irr)
-    return out
-
-
-#: Rows of a device array (``Geometry.subset`` of the sky irradiance, which may
-#: still be being computed: no wait for it).
-_take_rows = jax.jit(lambda a, rows: jnp.take(a, rows, axis=0))
+    grid = derived(sky.levels[0], "irradiance", lambda: irradiance_grid(sky.levels))
+    e = weight[:, None] * irradiance(grid, normal)
+    return np.stack([np.bincount(rows, e[:, c], minlength=n) for c in range(3)], -1)
 
 
 @functools.partial(jax.jit, static_argnums=3)
@@ -121,8 +106,9 @@ class Geometry(NamedTuple):
             their weights (``envlight.node_geometry``): the lobe is evaluated on
             these only.
         env_irradiance: (P, 3) the sky's irradiance E (int L cos_i dw) of each
-            pixel, with the sky stencil's own quadrature: a lobe of constant
-            shape g reflects g x E (Lambert's 1/pi), no per-step sum.
+            pixel, summed over the map (``fitter.irradiance``), not the stencil:
+            a lobe of constant shape g reflects g x E (Lambert's 1/pi), no
+            per-step sum.
 
         sun: the environment's sun cells as directional lights on their own
             sample sets (``SunCells``, ``sun_samples``); () without.
@@ -188,12 +174,9 @@ class Geometry(NamedTuple):
                           for i, cs, wt, col in self.sun.groups()) if self.sun else ()
         env = (_own_samples(self, env_rows, len(rows)) if own_samples and self.has_sky
                else {"env_index": env_rows})
-        # The sky irradiance on the device may still be being computed: not waited for.
-        irr = ((lambda a: _take_rows(a, rows))
-               if self.has_sky and isinstance(self.env_irradiance, jax.Array) else pick)
         return self._replace(
             sun=sun, **env, sample_weight=np.asarray(self.sample_weight),
-            light_color=np.asarray(self.light_color), **self._pixels(pick, per_light, irr))
+            light_color=np.asarray(self.light_color), **self._pixels(pick, per_light))
 
     def take(self, rows) -> "Geometry":
         """The active pixels ``rows`` only, by plain indexing: NumPy, or JAX
@@ -204,11 +187,11 @@ class Geometry(NamedTuple):
             raise ValueError("take: the geometry has env samples or sun cells; use subset")
         return self._replace(**self._pixels(lambda a: a[rows], lambda a: a[:, rows]))
 
-    def _pixels(self, pick, per_light, pick_irradiance=None) -> dict:
-        """The per-pixel fields, each picked: (P, ...) by ``pick`` (the sky
-        irradiance by ``pick_irradiance`` if given), (L, P, ...) by ``per_light``."""
+    def _pixels(self, pick, per_light) -> dict:
+        """The per-pixel fields, each picked: (P, ...) by ``pick``, (L, P, ...) by
+        ``per_light``."""
         return dict(
-            env_irradiance=(pick_irradiance or pick)(self.env_irradiance), hit=pick(self.hit),
+            env_irradiance=pick(self.env_irradiance), hit=pick(self.hit),
             pixel_index=None if self.pixel_index is None else pick(self.pixel_index),
             position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
             cosines=self.cosines.map(per_light),
@@ -406,20 +389,15 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
             order, node, frac, e_c = sky_table(lighting.sky, e_n[ok], e_v[ok], e_w[ok],
                                                nodes=det.nodes, rings=det.rings)
             r = np.where(order < 0, -1, r[np.maximum(order, 0)] if r.size else -1)
-            e_cos, e_nw = node_geometry(det.nodes, tuple(det.sub), det.rings)
-            if isinstance(e_c, np.ndarray):  # a small table, made on the host
-                e_irr = _host_irradiance(e_nw.sum(-1), node, frac, e_c, r, pixel_index.size)
-            else:
-                e_irr = _sky_irradiance(to_device(e_nw.sum(-1)), node, frac, e_c, r,
-                                        pixel_index.size)
-            return r, node, frac, e_c, e_cos, e_nw, e_irr
+            return (r, node, frac, e_c) + node_geometry(det.nodes, tuple(det.sub), det.rings)
 
         # The sky's tabulation compiled beside the sun's cells (XLA's compile releases the
         # interpreter): env_plastic's first fit ~0.05-0.1 s sooner (benchmarks/README.md).
         tabulated = _beside(sky) if lighting.sky is not None else None
         sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
         if tabulated is not None:
-            rows, node, frac, e_c, e_cos, e_nw, e_irr = tabulated()
+            e_irr = _sky_irradiance(lighting.sky, rows[ok], e_n[ok], e_w[ok], pixel_index.size)
+            rows, node, frac, e_c, e_cos, e_nw = tabulated()
     if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))

@@ -187,44 +187,14 @@ def _sun_unit(lobe, p, opts, sun):
     return _lobe_sum(lobe, p, opts, group_sums, sun.cosines, sun.weight, sun.color)
 
 
-def _constant_shape(lobe, opts):
-    """The shape of a parameter-free lobe if it is the same at 16 random direction
-    pairs (Lambert's 1/pi), else None. Evaluated at trace time on concrete arrays,
-    once per lobe and options (``_known_shapes``)."""
-    return _constant_shape_of(lobe, tuple(sorted(opts.items())))
-
-
-def _known_shapes(material: Material) -> None:
-    """``_constant_shape`` of the material's parameter-free opaque lobes, now: at
-    trace time its small eager evaluation would queue behind the sky table's
-    computation on the device (0.4 s of a first env fit's tracing)."""
-    for lobe in material.lobe_objects:
-        opts = material.options_of(lobe.name)
-        if lobe.kind == "brdf" and all(q.name == lobe.scale for q in lobe.params_for(opts)):
-            _constant_shape(lobe, opts)
-
-
-@functools.lru_cache(maxsize=64)
-def _constant_shape_of(lobe, opts: tuple):
-    opts = dict(opts)
-    rng = np.random.default_rng(0)
-    n = np.array([0.0, 0.0, 1.0])
-    wi, wo = (v / np.linalg.norm(v, axis=-1, keepdims=True)
-              for v in (rng.normal(size=(2, 16, 3)) * [1, 1, 0] + [0, 0, 1.5]))
-    from .bsdf.base import cosines
-
-    with jax.ensure_compile_time_eval():
-        g = np.asarray(lobe.shape({}, opts, cosines(np.broadcast_to(n, wi.shape), wi, wo)))
-    if g.shape == (16,) and np.all(g == g[0]) and np.isfinite(g[0]):
-        return float(g[0])
-    return None
-
-
 def _env_unit(lobe, p, opts, geo: Geometry):
-    """Sum over the sky stencil of shape * (L cos dw) per pixel: (P, 3).
+    """The sky's light (P, 3) per unit of the lobe's scale: its uniform part
+    (``Lobe.uniform``) times each pixel's irradiance (summed over the map, per
+    scene: no per-step sum), the rest of its shape summed over the sky stencil.
 
-    The lobe is evaluated once per theta_o node and cell (``envlight.node_geometry``),
-    then interpolated per env sample and summed against its cells (``envlight.sky_sum``).
+    The stencil's lobe is evaluated once per theta_o node and cell
+    (``envlight.node_geometry``), then interpolated per env sample and summed
+    against its cells (``envlight.sky_sum``).
     """
     from .envlight import sky_sum
 
@@ -232,15 +202,17 @@ def _env_unit(lobe, p, opts, geo: Geometry):
         mean = jnp.sum(g * wnode[..., None], -2) if rgb else jnp.sum(g * wnode, -1)  # a cell's
         return sky_sum(mean, node, frac, color)
 
-    # (parameter-free, its shape may be a constant)
-    const = _constant_shape(lobe, opts) if all(n == lobe.scale for n in p) else None
-    if const is not None:  # e.g. Lambert: g x the sky's irradiance, tabulated per scene
-        return const * geo.env_irradiance
+    out = jnp.zeros((geo.background.shape[0], 3), geo.env_irradiance.dtype)
+    if lobe.uniform is not None:
+        out = out + lobe.uniform({k: v for k, v in p.items() if k != lobe.scale},
+                                 opts) * geo.env_irradiance
+        if lobe.rest is None:
+            return out
+        lobe = dataclasses.replace(lobe, shape=lobe.rest, shape_grad=lobe.rest_grad)
     per_sample = _lobe_sum(lobe, p, opts, stencil_sum, geo.env_cosines, geo.env_node_weight,
                            geo.env_node, geo.env_frac, geo.env_color)
-    out = jnp.zeros((geo.background.shape[0], 3), per_sample.dtype)
     # env samples -> their pixels; a sample of a pixel not fitted points past the end
-    return out.at[geo.env_index].add(per_sample, mode="drop")
+    return out.at[geo.env_index].add(per_sample.astype(out.dtype), mode="drop")
 
 
 def _specular(lobe, p, opts, geo: Geometry, env: EnvData, sphere, env_type):
@@ -325,10 +297,6 @@ class Renderer:
         self.scene, self.material, self.dtype = scene, material, dtype
         self.env_type = scene.environment.type
         key_scene, key_dir = _prepare_key(scene, os.path.abspath(base_dir) if base_dir else None)
-        from .envlight import lit_by_environment
-
-        if lit_by_environment(scene, material):
-            _known_shapes(material)
         self.geometry, self.env, self.sphere = _prepare(
             key_scene, jnp.dtype(dtype), key_dir,
             env_light=bool(material.opaque))

@@ -26,6 +26,14 @@ A lobe is one of two kinds:
   for its local Jacobian by ``jax.jacfwd``, 13 ms by hand), and the fitter
   evaluates it at every solver step. ``tests/test_stability.py`` checks every
   ``shape_grad`` against ``jax.jacfwd`` of ``shape``.
+  Optionally ``uniform(p, opts)`` is the part of the shape that is the same
+  for every pair of directions (Lambert's 1/pi, Oren-Nayar's A/pi) and
+  ``rest(p, opts, c)`` the remainder, shape = uniform + rest (None: the shape
+  is uniform), with ``rest_grad`` as ``shape_grad``: an environment's sky
+  lights the uniform part through its irradiance summed over the map
+  (``fitter.irradiance``), the sky stencil only the rest. A lobe whose rest
+  (or shape) the stencil sums less accurately than its default states its
+  measured ``stencil_accuracy`` (relative; the stated errors take it).
 * ``"specular"``: a delta lobe (mirror, smooth dielectric) that only sees the
   environment; ``radiance(p, opts, hit, env) -> (..., 3)`` returns the
   outgoing radiance towards the camera (``hit``: a ``SurfaceHit``; ``env``: a
@@ -342,6 +350,10 @@ class Lobe:
     derived: Callable[[dict, dict], dict] | None = None
     interior: Callable[[dict, dict, dict], dict] | None = None
     complex_index: Callable[[dict], tuple | None] | None = None
+    uniform: Callable[[dict, dict], Any] | None = None
+    rest: Callable | None = None
+    rest_grad: Callable | None = None
+    stencil_accuracy: float | None = None
 
     def params_for(self, opts: Mapping[str, Any]) -> tuple[Param, ...]:
         """The parameters under options ``opts`` (missing options: their defaults)."""

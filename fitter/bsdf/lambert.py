@@ -10,8 +10,12 @@ from .base import Hints, Lobe, Param, Point
 from .mitsuba_map import MitsubaMapping, rgb
 
 
+def _uniform(p, opts):
+    return 1.0 / jnp.pi
+
+
 def _shape(p, opts, c):
-    return jnp.full_like(c.cos_i, 1.0 / jnp.pi)
+    return jnp.full_like(c.cos_i, _uniform(p, opts))
 
 
 def _mitsuba(p, opts):
@@ -26,6 +30,7 @@ LOBE = Lobe(
     ),
     scale="rho_d",
     shape=_shape,
+    uniform=_uniform,
     doc="ρ_d/π",
     mitsuba=MitsubaMapping(_mitsuba),
     hints=Hints(points=(Point("lambert", {"rho_d": (1.0, 1.0, 1.0)}),),

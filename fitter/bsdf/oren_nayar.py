@@ -35,24 +35,52 @@ def coefficients(sigma):
     return 1.0 - s2 / (2.0 * (s2 + 0.33)), 0.45 * s2 / (s2 + 0.09)
 
 
-def _shape(p, opts, c):
-    a, b = coefficients(p["sigma"])
+def _term(c):
+    """max(0, cos(phi_i - phi_o)) sin(alpha) tan(beta) from the cosines (above)."""
     cmax = jnp.maximum(c.cos_i, c.cos_o)
-    term = safe_div(jnp.maximum(c.cos_io - c.cos_i * c.cos_o, 0.0), cmax, cmax > 0)
-    return (a + b * term) / jnp.pi
+    return safe_div(jnp.maximum(c.cos_io - c.cos_i * c.cos_o, 0.0), cmax, cmax > 0)
+
+
+def _uniform(p, opts):
+    """A / pi: the part of the shape the same for every pair of directions."""
+    return coefficients(p["sigma"])[0] / jnp.pi
+
+
+def _rest(p, opts, c):
+    return coefficients(p["sigma"])[1] * _term(c) / jnp.pi
+
+
+def _shape(p, opts, c):
+    return _uniform(p, opts) + _rest(p, opts, c)
+
+
+def _derivatives(sigma):
+    """(dA/dsigma, dB/dsigma) = (-0.33 sigma / (sigma^2 + 0.33)^2,
+    0.081 sigma / (sigma^2 + 0.09)^2)."""
+    s2 = sigma * sigma
+    return -0.33 * sigma / ((s2 + 0.33) * (s2 + 0.33)), 0.081 * sigma / ((s2 + 0.09) * (s2 + 0.09))
+
+
+def _rest_grad(p, opts, c):
+    """The rest and d rest / d sigma (``Lobe.rest_grad``)."""
+    term = _term(c)
+    return (coefficients(p["sigma"])[1] * term / jnp.pi,
+            {"sigma": _derivatives(p["sigma"])[1] * term / jnp.pi})
 
 
 def _shape_grad(p, opts, c):
-    """Shape and d shape / d sigma (``Lobe.shape_grad``): dA/dsigma =
-    -0.33 sigma / (sigma^2 + 0.33)^2, dB/dsigma = 0.081 sigma / (sigma^2 + 0.09)^2."""
-    sigma = p["sigma"]
-    s2 = sigma * sigma
-    a, b = coefficients(sigma)
-    da = -0.33 * sigma / ((s2 + 0.33) * (s2 + 0.33))
-    db = 0.081 * sigma / ((s2 + 0.09) * (s2 + 0.09))
-    cmax = jnp.maximum(c.cos_i, c.cos_o)
-    term = safe_div(jnp.maximum(c.cos_io - c.cos_i * c.cos_o, 0.0), cmax, cmax > 0)
+    """Shape and d shape / d sigma (``Lobe.shape_grad``)."""
+    (a, b), (da, db), term = coefficients(p["sigma"]), _derivatives(p["sigma"]), _term(c)
     return (a + b * term) / jnp.pi, {"sigma": (da + db * term) / jnp.pi}
+
+
+#: The sky stencil's relative error of the B term under an environment (the A term is
+#: lit by the summed irradiance): against a brute-force integral over the probe's sky
+#: (``tests/test_irradiance.py``), rms 1.6 %, at most 5.2 % (sigma 0.35 and 0.6;
+#: under a constant sky 0.14 %, 0.4 %: the radiance across the stencil's wide outer
+#: cells, which this broad term weighs, not its quadrature). Its share of the lobe is
+#: small (~6 % at sigma = 0.6): the whole term within 0.28 %.
+STENCIL_ACCURACY = 0.03
 
 
 def _mitsuba(p, opts):
@@ -104,6 +132,10 @@ LOBE = Lobe(
     scale="rho_d",
     shape=_shape,
     shape_grad=_shape_grad,
+    uniform=_uniform,
+    rest=_rest,
+    rest_grad=_rest_grad,
+    stencil_accuracy=STENCIL_ACCURACY,
     doc="lecture's A/B form; σ = std-dev of the facet slope angle; σ = 0 is Lambert exactly",
     mitsuba=MitsubaMapping(_mitsuba, plugins={"fitter_oren_nayar": _plugin}),
     hints=Hints(

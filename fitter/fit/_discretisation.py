@@ -21,9 +21,9 @@ triple and, at ``envlight.Detail.finer()``, its tabulation doubles (measured
 at 128^2 env_plastic: 52 s of a 72 s fit, peak RSS 4.8 GB, against 13 s and
 1.3 GB without). Instead, its ring discretisation is compared with a stencil
 of half the rings (``ring_error``, Richardson: the difference / 3), and its
-measured accuracy against Mitsuba (``SKY_STENCIL_ACCURACY``; Lambert's,
-``IRRADIANCE_ACCURACY``) times the fitted sky term of each kind of lobe is
-propagated the same way, all independent.
+measured accuracy (``SKY_STENCIL_ACCURACY``, per lobe ``Lobe.stencil_accuracy``;
+the uniform parts' summed irradiance, ``IRRADIANCE_ACCURACY``) times the fitted
+sky term's parts is propagated the same way, all independent.
 Cost: finer geometries, renders of sampled pixels, one solve for every shift
 with the Jacobian already made (``benchmarks/discretisation_cost.py``).
 """
@@ -40,7 +40,7 @@ from .._keep import hold, nbytes, recent
 from .._math import to_device
 from ..environment import load_environment
 from ..geometry import build_geometry
-from ..material import EXPOSURE_KEY, Material
+from ..material import EXPOSURE_KEY, Material, lobe_params
 from ..render import KEEP_BYTES
 from . import _adequacy, _renders
 from ._problem import user_values
@@ -58,19 +58,21 @@ FINER_SUN = (4, 16)
 #: The fitted model's sun cells (``envlight``'s defaults), as ``_lighting`` takes them.
 SUN = (envlight.SUN_CELL, envlight.SUN_SUB)
 #: The sky stencil (not refined): its measured accuracy, stated as that relative error of
-#: the non-Lambert lobes' sky term (Lambert's is exact, rho/pi x irradiance):
-#: against a brute-force hemisphere quadrature Beckmann m = 0.1 (the
+#: the part of each lobe's sky term it sums (``Lobe.stencil_accuracy`` where a lobe
+#: states its own): against a brute-force hemisphere quadrature Beckmann m = 0.1 (the
 #: narrowest shipped lobe's bound) is within 0.33 % up to 89.5 degrees
 #: (``tests/test_envlight_reference.py`` asserts 0.5 %), against Mitsuba at
 #: 4096 spp Torrance-Sparrow m = 0.1 relative RMSE 0.62 % over a 0.38 %
 #: noise floor, limb pixels +0.03 % (benchmarks/README.md, envlight).
 SKY_STENCIL_ACCURACY = 0.005
-#: Lambert's sky term, rho/pi x the irradiance the stencil tabulates (exact for a
-#: constant sky), stated to this relative accuracy: against Mitsuba at 4096 spp
-#: under the probe its relative RMSE is 0.41 % over a 0.20 % noise floor, so
-#: 0.36 % of its own, mean -0.12 % (benchmarks/README.md, envlight). Left out, the
-#: env cases' rho_d was off by 3-4 stated errors (env_plastic: 0.0016 +- 0.00037).
-IRRADIANCE_ACCURACY = 0.004
+#: The lobes' uniform parts (Lambert's rho/pi, Oren-Nayar's A rho/pi) times the
+#: irradiance summed over the map (``fitter.irradiance``), stated to this relative
+#: accuracy: the sum is within 2.8e-4 of a brute-force quadrature (rms 5e-5,
+#: ``tests/test_irradiance.py``); against Mitsuba at 4096 spp under the probe
+#: Lambert's whole term (its sun cells and pixel sampling too) has a relative RMSE of
+#: 0.23 % over a 0.20 % noise floor, mean 0.00 %, limb -0.04 % (benchmarks/README.md,
+#: envlight; through the sky stencil it had been 0.41 %, mean -0.12 %).
+IRRADIANCE_ACCURACY = 0.001
 
 #: The finer model rendered in float32 (``single``) where every lobe has
 #: ``single_precision`` and no environment lights the lobes: its difference
@@ -211,7 +213,7 @@ def prefetch(problem) -> None:
     def make():
         try:
             if sky_ahead:  # ``sky_terms``' render (quick): first
-                mats = _sky_materials(r.material, _sky_kinds(r.material))
+                mats = _sky_materials(r.material)
                 args, key = _renders.args_and_key(params, _dark(problem.geometry), r.env,
                                                   _sphere(scene), mats, r.env_type)
                 sky_box[1] = key, _renders.compile_render(args, mats, r.env_type, key)
@@ -359,31 +361,52 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
 
 
 def sky_terms(data, params, material, env_type) -> tuple[np.ndarray, np.ndarray]:
-    """The fitted model's sky term (P, 3) of every opaque lobe and of those but Lambert
-    (one render); zeros when the environment lights none. The model minus the first
-    is the model without its sky term."""
+    """(the fitted model's sky term (P, 3) of its opaque lobes, the stated bounds of
+    its error (k, P, 3), independent): ``IRRADIANCE_ACCURACY`` x the lobes' uniform
+    parts (``Lobe.uniform``, lit by the summed irradiance) and, per lobe with a
+    part the sky stencil sums, its ``Lobe.stencil_accuracy`` (default
+    ``SKY_STENCIL_ACCURACY``) x that part. Zeros and (0, P, 3) when the environment
+    lights none. The model minus the sky term is the model without it."""
+    zero = np.zeros(np.shape(data.geometry.background))
     if not (material.opaque and data.geometry.has_sky):
-        return (np.zeros(np.shape(data.geometry.background)),) * 2
+        return zero, np.zeros((0,) + zero.shape)
     _joined(SKY_TERMS)  # its executable, if ``prefetch`` compiled it
+    host = _host_params(params)
     # to_device: jnp.asarray compiled a conversion kernel per shape on a first run
     params = {k: to_device(np.asarray(v), data.target.dtype) for k, v in params.items()}
-    kinds = _sky_kinds(material)
-    terms = _sky_terms(params, data.geometry, data.env, data.sphere, material, kinds, env_type)
-    glossy = any(n != "lambert" for n in material.opaque)
-    return terms[0], (terms[-1] if glossy else np.zeros_like(terms[0]))
+    per_lobe = _sky_terms(params, data.geometry, data.env, data.sphere, material, env_type)
+    bounds, uniform = [], np.zeros_like(zero)
+    for lobe, term in zip(_opaque(material), per_lobe):
+        part = _uniform_part(data.geometry, host, material, lobe)
+        uniform += part
+        if lobe.uniform is None or lobe.rest is not None:
+            accuracy = lobe.stencil_accuracy or SKY_STENCIL_ACCURACY
+            bounds.append(accuracy * (term - part))
+    if any(lobe.uniform is not None for lobe in _opaque(material)):
+        bounds.append(IRRADIANCE_ACCURACY * uniform)
+    return per_lobe.sum(0), np.stack(bounds)
 
 
-def _sky_kinds(material) -> tuple:
-    """``sky_terms``' lobes: every opaque one, and those but Lambert if that differs."""
-    brdf = material.opaque
-    glossy = [n for n in brdf if n != "lambert"]
-    return (brdf, glossy) if glossy and len(glossy) < len(brdf) else (brdf,)
+def _opaque(material) -> list:
+    return [lb for lb in material.lobe_objects if lb.name in material.opaque]
 
 
-def _sky_materials(material, kinds):
-    """The material (one kind) or materials (a tuple) that ``_sky_terms`` renders."""
-    lobes = tuple(_lobes(material, names) for names in kinds)
-    return lobes[0] if len(lobes) == 1 else lobes
+def _uniform_part(geo, params, material, lobe) -> np.ndarray:
+    """``lobe``'s uniform part under the sky (P, 3): scale x uniform x the pixel's
+    irradiance, times the exposure if any (``render._env_unit``); 0 without one."""
+    irr = np.asarray(geo.env_irradiance, dtype=np.float64)
+    if lobe.uniform is None:
+        return np.zeros_like(irr)
+    p = lobe_params(params, lobe.name)
+    u = lobe.uniform({k: v for k, v in p.items() if k != lobe.scale},
+                     material.options_of(lobe.name))
+    out = np.asarray(p[lobe.scale], dtype=np.float64) * float(u) * irr
+    return out * float(params[EXPOSURE_KEY]) if material.exposure else out
+
+
+def _sky_materials(material):
+    """Each opaque lobe of ``material`` alone (a tuple: one executable renders them)."""
+    return tuple(_lobes(material, (lb.name,)) for lb in _opaque(material))
 
 
 def _lobes(material, names) -> Material:
@@ -400,28 +423,14 @@ def _dark(geo):
         background=to_device(np.zeros(np.shape(geo.background)), geo.background.dtype))
 
 
-def _sky_terms(params, geo, env, sphere, material, kinds, env_type) -> np.ndarray:
-    """The sky terms (k, P, 3) of ``material``'s lobes of each of ``kinds`` (lists of
-    names) on ``geo`` (``_dark``), times the exposure if any; ``params`` as
-    ``_renders.render`` takes them."""
-    sky = _renders.render(params, _dark(geo), env, sphere, _sky_materials(material, kinds),
-                          env_type)
-    sky = sky[None] if len(kinds) == 1 else sky
+def _sky_terms(params, geo, env, sphere, material, env_type, each: bool = True) -> np.ndarray:
+    """The sky term (k, P, 3) of each of ``material``'s opaque lobes on ``geo``
+    (``_dark``; not ``each``: of them together, (P, 3)), times the exposure if any;
+    ``params`` as ``_renders.render`` takes them."""
+    lobes = _sky_materials(material) if each else _lobes(material, material.opaque)
+    sky = _renders.render(params, _dark(geo), env, sphere, lobes, env_type)
+    sky = sky.reshape((-1,) + np.shape(sky)[-2:]) if each else sky
     return sky * float(params[EXPOSURE_KEY]) if material.exposure else sky
-
-
-def sky_stencil_error(data, material, sky, glossy) -> np.ndarray:
-    """Stated bounds of the sky stencil's error (k, P, 3), one per kind of lobe the
-    environment lights, independent: ``SKY_STENCIL_ACCURACY`` x the sky term ``glossy``
-    of the opaque lobes but Lambert, ``IRRADIANCE_ACCURACY`` x Lambert's, what they leave
-    of ``sky`` (every opaque lobe's; both ``sky_terms``); (0, P, 3) when it lights none."""
-    brdf = material.opaque
-    if not (brdf and data.geometry.has_sky):
-        return np.zeros((0,) + np.shape(sky))
-    out = [SKY_STENCIL_ACCURACY * glossy] if any(n != "lambert" for n in brdf) else []
-    if "lambert" in brdf:
-        out.append(IRRADIANCE_ACCURACY * (np.asarray(sky, dtype=np.float64) - glossy))
-    return np.stack(out)
 
 
 #: The sky stencil's rings (``skystencil.RING_EDGES``) against half of them
@@ -468,7 +477,7 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
         dark, problem.base_dir, env_type, _half_rings(), flat))
     half = np.zeros((pick.size, 3))
     half[found] = _sky_terms(_host_params(params), geo, env64, _sphere(scene), material,
-                             (material.opaque,), env_type)[0]
+                             env_type, each=False)
     out = np.zeros(np.shape(sky))
     out[pick] = (np.asarray(sky, dtype=np.float64)[pick] - half) * (RING_STRIDE / RING_RICHARDSON)
     out[pick[~found]] = 0.0

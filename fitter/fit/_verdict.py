@@ -311,7 +311,7 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
         _adequacy.pixel_regions(data.geometry), problem.renderer.scene))
     finer = np.zeros_like(model)
     coverage = np.zeros(model.shape[0])
-    sky_term, glossy = _discretisation.sky_terms(data, params, spec.material, spec.env_type)
+    sky_term, sky = _discretisation.sky_terms(data, params, spec.material, spec.env_type)
     coarse = model - sky_term  # the model without its sky term
     finer[rows], coverage[rows] = _discretisation.finer_values(problem, params, rows,
                                                                coarse[rows])
@@ -325,7 +325,6 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
     w = np.asarray(data.weights, dtype=np.float64) * covered[:, None]
     diff = finer + sky_term * (coverage / np.maximum(seen, 1e-300))[:, None] - model
     diff = np.where(covered[:, None], diff, 0.0)
-    sky = _discretisation.sky_stencil_error(data, spec.material, sky_term, glossy)
     changes = [diff]
     if data.geometry.has_sky:  # (without a sky the ring error is zero: no column)
         rings = np.zeros_like(model)

@@ -1,0 +1,78 @@
+"""A sky's irradiance per normal, summed over its map: Lambert's sky term.
+
+E(n) = int L(w) max(n . w, 0) dw is the map convolved with the clamped cosine
+(Ramamoorthi & Hanrahan 2001, "An efficient representation for irradiance
+environment maps", eq. 1). Here it is summed over the map itself, as
+Mitsuba's ``envmap`` reads it: bilinear between texel centres (columns at
+u = (i + 0.5) / W, rows at v' = j / (H - 1), the poles). Resampled to finer
+nodes of the same bilinear surface, each node weighs its tent's solid angle,
+so the sum is exact but for the cosine's variation across a tent. On a
+lat-long grid of normals with the map's columns the sum over azimuth is a
+circular convolution per pair of rows (one FFT per row pair), and a normal
+between grid nodes takes the bilinear value of its four.
+
+Against a brute-force quadrature of the bilinear map (2048 x 4096
+directions) on the shipped probe's sky, 400 random normals: relative rms
+4.9e-5, at most 2.8e-4 (the sky stencil's own irradiance, which Lambert's sky
+term took before: rms 2.4-4.1e-3 per channel, at most 1.4e-2 on the pixels of a
+64^2 sphere); ``tests/test_irradiance.py``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .envlight import bilinear, dir_to_uv
+
+#: The map is summed at its finest pyramid level at most this wide, its columns
+#: resampled to at least this many: the cosine then varies by at most 0.025 rad
+#: across a tent (its error ~ that squared / 12; 128 columns: rms 2.9e-4).
+COLUMNS = 256
+#: ... and its rows to at least this many (the poles included).
+ROWS = 127
+
+
+def _tent_weights(rows: int) -> np.ndarray:
+    """(rows,) int tent_j(theta) sin(theta) dtheta of rows at theta_j = j pi / (rows - 1)."""
+    d = np.pi / (rows - 1)
+    w = np.sin(d * np.arange(rows)) * 2.0 * (1.0 - np.cos(d)) / d
+    w[0] = w[-1] = 1.0 - np.sin(d) / d  # (a pole's tent is one-sided)
+    return w
+
+
+def _source(levels) -> np.ndarray:
+    """The finest level at most ``COLUMNS`` wide, resampled on its own bilinear surface
+    to at least ``ROWS`` x ``COLUMNS`` nodes: (rows, columns, 3)."""
+    img = next(lv for lv in levels if lv.shape[1] <= COLUMNS)
+    h, w = img.shape[:2]
+    rows = (h - 1) * int(np.ceil((ROWS - 1) / (h - 1))) + 1
+    cols = w * int(np.ceil(COLUMNS / w))
+    u = (np.arange(cols) + 0.5) / cols
+    v = np.arange(rows) / (rows - 1)
+    return bilinear(np.asarray(img, np.float64), u[None, :], v[:, None])
+
+
+def irradiance_grid(levels) -> np.ndarray:
+    """E (rows, columns, 3) of a sky (``levels``: its pyramid, ``envlight.Pyramid.levels``)
+    at the normals of a lat-long grid in Mitsuba's layout (rows at the poles,
+    columns at (i + 0.5) / columns); ``irradiance`` reads it."""
+    src = _source(levels)
+    rows, cols = src.shape[:2]
+    theta = np.pi * np.arange(rows) / (rows - 1)
+    c, s = np.cos(theta), np.sin(theta)
+    dphi = 2.0 * np.pi * np.arange(cols) / cols
+    weighted = src * (_tent_weights(rows) * 2.0 * np.pi / cols)[:, None, None]
+    # K[a, b, m]: the clamped cosine between row a's normal and row b's direction m
+    # columns apart; E[a] = sum_b K[a, b] (*) L[b] (circular in azimuth).
+    k = np.maximum(c[:, None, None] * c[None, :, None]
+                   + (s[:, None, None] * s[None, :, None]) * np.cos(dphi), 0.0)
+    spectrum = np.einsum("abf,bfc->afc", np.fft.rfft(k, axis=-1),
+                         np.fft.rfft(weighted, axis=1))
+    return np.fft.irfft(spectrum, n=cols, axis=1)
+
+
+def irradiance(grid: np.ndarray, normals) -> np.ndarray:
+    """E (..., 3) at unit ``normals`` (..., 3), bilinear in the grid of
+    ``irradiance_grid``."""
+    u, v = dir_to_uv(np.asarray(normals, np.float64))
+    return bilinear(grid, u, v)
