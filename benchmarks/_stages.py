@@ -29,7 +29,6 @@ WRAPPED = (
     ("_discretisation", "sky_terms", "discretisation term (_discretisation)"),
     ("_discretisation", "coarse_without_sky", "discretisation term (_discretisation)"),
     ("_discretisation", "finer_values", "discretisation term (_discretisation)"),
-    ("_discretisation", "sky_stencil_error", "discretisation term (_discretisation)"),
     ("_discretisation", "ring_error", "discretisation term (_discretisation)"),
     ("_discretisation", "shift", "discretisation term (_discretisation)"),
 )

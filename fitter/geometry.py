@@ -107,8 +107,8 @@ class Geometry(NamedTuple):
             these only.
         env_irradiance: (P, 3) the sky's irradiance E (int L cos_i dw) of each
             pixel, summed over the map (``fitter.irradiance``), not the stencil:
-            a lobe of constant shape g reflects g x E (Lambert's 1/pi), no
-            per-step sum.
+            a lobe's uniform part u (``Lobe.uniform``: Lambert's 1/pi) reflects
+            u x E, no per-step sum.
 
         sun: the environment's sun cells as directional lights on their own
             sample sets (``SunCells``, ``sun_samples``); () without.

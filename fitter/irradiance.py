@@ -55,7 +55,11 @@ def _source(levels) -> np.ndarray:
 def irradiance_grid(levels) -> np.ndarray:
     """E (rows, columns, 3) of a sky (``levels``: its pyramid, ``envlight.Pyramid.levels``)
     at the normals of a lat-long grid in Mitsuba's layout (rows at the poles,
-    columns at (i + 0.5) / columns); ``irradiance`` reads it."""
+    columns at (i + 0.5) / columns); ``irradiance`` reads it. A uniform sky's is
+    pi L exactly (a ``constant`` environment's)."""
+    top = np.asarray(levels[0], np.float64)
+    if np.all(top == top[:1, :1]):
+        return np.broadcast_to(np.pi * top[:1, :1], (2, 2, top.shape[-1])).copy()
     src = _source(levels)
     rows, cols = src.shape[:2]
     theta = np.pi * np.arange(rows) / (rows - 1)

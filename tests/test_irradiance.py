@@ -52,7 +52,12 @@ def _grid(img):
 def test_a_constant_sky_gives_pi_times_its_radiance():
     rad = np.array([0.5, 1.0, 2.0])
     got = irradiance(_grid(np.broadcast_to(rad, (4, 8, 3)).copy()), _normals())
-    np.testing.assert_allclose(got, np.pi * rad * np.ones((200, 1)), rtol=1e-4)
+    np.testing.assert_allclose(got, np.pi * rad * np.ones((200, 1)), rtol=1e-15)
+    # and the sum itself: a map 1e-12 from constant in one texel takes the general path
+    img = np.broadcast_to(rad, (65, 128, 3)).copy()
+    img[-1, 0] *= 1.0 + 1e-12
+    np.testing.assert_allclose(irradiance(_grid(img), _normals()),
+                               np.pi * rad * np.ones((200, 1)), rtol=1e-4)
 
 
 def test_a_sky_over_the_upper_hemisphere_gives_the_dome_formula():

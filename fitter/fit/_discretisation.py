@@ -380,7 +380,8 @@ def sky_terms(data, params, material, env_type) -> tuple[np.ndarray, np.ndarray]
         part = _uniform_part(data.geometry, host, material, lobe)
         uniform += part
         if lobe.uniform is None or lobe.rest is not None:
-            accuracy = lobe.stencil_accuracy or SKY_STENCIL_ACCURACY
+            accuracy = (SKY_STENCIL_ACCURACY if lobe.stencil_accuracy is None
+                        else lobe.stencil_accuracy)
             bounds.append(accuracy * (term - part))
     if any(lobe.uniform is not None for lobe in _opaque(material)):
         bounds.append(IRRADIANCE_ACCURACY * uniform)
