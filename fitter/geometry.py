@@ -108,10 +108,16 @@ class Geometry(NamedTuple):
         env_irradiance: (P, 3) the sky's irradiance E (int L cos_i dw) of each
             pixel, summed over the map (``fitter.irradiance``), not the stencil:
             a lobe's uniform part u (``Lobe.uniform``: Lambert's 1/pi) reflects
-            u x E, no per-step sum.
+            u x E, no per-step sum; None without a sky (``sky_lit``).
 
         sun: the environment's sun cells as directional lights on their own
             sample sets (``SunCells``, ``sun_samples``); () without.
+        env_kernels: {lobe name: (P, 3)} the sky's sum of that lobe's kernel per
+            pixel (``Lobe.kernel``, ``irradiance.kernel_sums``: per material,
+            ``with_kernels``); None: none.
+        env_samples: the env samples with a lit sky (rows, normals, views,
+            weights) and the sky's pyramid levels, which ``with_kernels`` sums
+            over; None once a renderer has prepared the geometry.
     """
 
     pixel_index: np.ndarray
@@ -133,6 +139,8 @@ class Geometry(NamedTuple):
     env_node_weight: np.ndarray
     env_irradiance: np.ndarray
     sun: SunCells | tuple = ()
+    env_kernels: dict | None = None
+    env_samples: tuple | None = None
 
     @property
     def has_env_samples(self) -> bool:
@@ -141,8 +149,14 @@ class Geometry(NamedTuple):
 
     @property
     def has_sky(self) -> bool:
-        """Whether the environment's sky term lights these pixels (a sky table)."""
+        """Whether these pixels have a sky table (the stencil's lobes' sky term)."""
         return bool(self.env_color.shape[0] and self.env_color.shape[1])
+
+    @property
+    def sky_lit(self) -> bool:
+        """Whether the environment's sky lights these pixels (its irradiance, and a
+        sky table where a lobe needs the stencil, ``has_sky``)."""
+        return self.env_irradiance is not None
 
     def kept(self, name: str, make):
         """``make()``, a value that depends on this geometry alone, kept with it
@@ -191,7 +205,10 @@ class Geometry(NamedTuple):
         """The per-pixel fields, each picked: (P, ...) by ``pick``, (L, P, ...) by
         ``per_light``."""
         return dict(
-            env_irradiance=pick(self.env_irradiance), hit=pick(self.hit),
+            env_irradiance=None if self.env_irradiance is None else pick(self.env_irradiance),
+            hit=pick(self.hit),
+            env_kernels=None if self.env_kernels is None else {
+                k: pick(v) for k, v in self.env_kernels.items()},
             pixel_index=None if self.pixel_index is None else pick(self.pixel_index),
             position=pick(self.position), normal=pick(self.normal), ray_dir=pick(self.ray_dir),
             cosines=self.cosines.map(per_light),
@@ -331,14 +348,15 @@ def _beside(fn):
 
 
 def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
-                   pixels=None) -> Geometry:
+                   pixels=None, stencil: bool = True) -> Geometry:
     """Trace the camera rays against the sphere and tabulate the lights.
 
     ``lighting``: the environment as light (``fitter.envlight.EnvLights``) or
     None (the opaque lobes see the point/directional lights only); with a
     ``sky`` of None the sun cells alone (no sky tabulation). ``pixels``: flat
     indices (row * W + col) of the only pixels to make active (default all
-    that the sphere covers).
+    that the sphere covers); ``stencil``: tabulate the sky stencil (False where
+    every lobe the sky lights is ``Lobe.stencil_free``: its sums alone).
     """
     sph = scene.sphere
     sel = None if pixels is None else np.unique(np.asarray(pixels, dtype=np.int64))
@@ -377,6 +395,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     lit = hit & (cos.cos_i > 0) & (cos.cos_o > 0)
     cos = Cosines(*(np.where(lit, a, s) for a, s in zip(cos, UNLIT)))
     light_weight = np.where(lit, weight * cos.cos_i * falloff, 0.0)
+    tabulated = None
     if lighting is not None:
         from .envlight import node_geometry, sky_table
 
@@ -393,17 +412,37 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
 
         # The sky's tabulation compiled beside the sun's cells (XLA's compile releases the
         # interpreter): env_plastic's first fit ~0.05-0.1 s sooner (benchmarks/README.md).
-        tabulated = _beside(sky) if lighting.sky is not None else None
+        tabulated = _beside(sky) if lighting.sky is not None and stencil else None
         sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
-        if tabulated is not None:
+        if lighting.sky is not None:
             e_irr = _sky_irradiance(lighting.sky, rows[ok], e_n[ok], e_w[ok], pixel_index.size)
+            samples = (rows[ok], e_n[ok], e_v[ok], e_w[ok], tuple(lighting.sky.levels))
+        if tabulated is not None:
             rows, node, frac, e_c, e_cos, e_nw = tabulated()
-    if lighting is None or lighting.sky is None:  # no sky term (a sky of None: the sun alone)
+    if tabulated is None:  # no sky table (no sky, the sun alone, or no lobe's stencil)
         rows, node, frac = np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0)
         e_c, e_nw = np.zeros((0, 0, 0)), np.zeros((0, 0))
         e_cos = Cosines(*(np.zeros((0, 0)),) * len(Cosines._fields))
-        e_irr = np.zeros((pixel_index.size, 3))
+    if lighting is None or lighting.sky is None:
+        e_irr, samples = None, None
         sun = sun if lighting is not None else ()
     return Geometry(pixel_index, hit, weight, pos, normal, d_a, cos, light_weight, color,
                     background, background_image, rows, node, frac, e_c, e_cos, e_nw, e_irr,
-                    sun)
+                    sun, env_samples=samples)
+
+
+def with_kernels(geo: Geometry, material) -> Geometry:
+    """``geo`` with the sky's sum of each of ``material``'s opaque lobes' kernels
+    (``Lobe.kernel``) per pixel (``env_kernels``), and without its env samples; as
+    it is without a lit sky or such a lobe."""
+    from .irradiance import kernel_sums
+
+    samples = geo.env_samples
+    geo = geo._replace(env_samples=None)
+    kernels = [lb for lb in material.lobe_objects if lb.kind == "brdf" and lb.kernel]
+    if samples is None or not kernels:
+        return geo
+    rows, normal, view, weight, levels = samples
+    n = np.shape(geo.hit)[0]
+    return geo._replace(env_kernels={lb.name: kernel_sums(levels, lb.kernel, rows, normal,
+                                                          view, weight, n) for lb in kernels})

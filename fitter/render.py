@@ -33,7 +33,7 @@ from ._math import to_device
 from ._modules import make_callable
 from .bsdf.base import SurfaceHit
 from .environment import EnvData, load_environment, lookup
-from .geometry import Geometry, build_geometry
+from .geometry import Geometry, build_geometry, with_kernels
 from .blasthreads import one_blas_thread
 from .hugepages import advice_off
 from .limits import check_scene
@@ -189,8 +189,10 @@ def _sun_unit(lobe, p, opts, sun):
 
 def _env_unit(lobe, p, opts, geo: Geometry):
     """The sky's light (P, 3) per unit of the lobe's scale: its uniform part
-    (``Lobe.uniform``) times each pixel's irradiance (summed over the map, per
-    scene: no per-step sum), the rest of its shape summed over the sky stencil.
+    (``Lobe.uniform``) times each pixel's irradiance and its kernel's factor times
+    the pixel's kernel sum (``Lobe.kernel``; both summed over the map, once per
+    scene and material: no per-step sum), or else its shape summed over the sky
+    stencil.
 
     The stencil's lobe is evaluated once per theta_o node and cell
     (``envlight.node_geometry``), then interpolated per env sample and summed
@@ -202,13 +204,13 @@ def _env_unit(lobe, p, opts, geo: Geometry):
         mean = jnp.sum(g * wnode[..., None], -2) if rgb else jnp.sum(g * wnode, -1)  # a cell's
         return sky_sum(mean, node, frac, color)
 
-    out = jnp.zeros((geo.background.shape[0], 3), geo.env_irradiance.dtype)
     if lobe.uniform is not None:
-        out = out + lobe.uniform({k: v for k, v in p.items() if k != lobe.scale},
-                                 opts) * geo.env_irradiance
-        if lobe.rest is None:
-            return out
-        lobe = dataclasses.replace(lobe, shape=lobe.rest, shape_grad=lobe.rest_grad)
+        q = {k: v for k, v in p.items() if k != lobe.scale}
+        out = lobe.uniform(q, opts) * geo.env_irradiance
+        if lobe.kernel is not None:
+            out = out + lobe.kernel_factor(q, opts) * geo.env_kernels[lobe.name]
+        return out
+    out = jnp.zeros((geo.background.shape[0], 3), geo.env_irradiance.dtype)
     per_sample = _lobe_sum(lobe, p, opts, stencil_sum, geo.env_cosines, geo.env_node_weight,
                            geo.env_node, geo.env_frac, geo.env_color)
     # env samples -> their pixels; a sample of a pixel not fitted points past the end
@@ -257,7 +259,7 @@ def render_active(params, geo: Geometry, env: EnvData, sphere, *, material, env_
         if lobe.kind == "brdf":
             if geo.light_weight.shape[0]:
                 value = value + p[lobe.scale] * _brdf_unit(lobe, p, opts, geo)
-            if geo.has_sky:
+            if geo.sky_lit:
                 value = value + p[lobe.scale] * _env_unit(lobe, p, opts, geo)
             if geo.sun:
                 value = value + p[lobe.scale] * jnp.zeros_like(value).at[geo.sun.index].add(
@@ -297,9 +299,14 @@ class Renderer:
         self.scene, self.material, self.dtype = scene, material, dtype
         self.env_type = scene.environment.type
         key_scene, key_dir = _prepare_key(scene, os.path.abspath(base_dir) if base_dir else None)
-        self.geometry, self.env, self.sphere = _prepare(
-            key_scene, jnp.dtype(dtype), key_dir,
-            env_light=bool(material.opaque))
+        stencil = any(lb.kind == "brdf" and not lb.stencil_free for lb in material.lobe_objects)
+        geo, self.env, self.sphere = _prepare(key_scene, jnp.dtype(dtype), key_dir,
+                                              env_light=bool(material.opaque), stencil=stencil)
+        geo = with_kernels(geo, material)
+        if geo.env_kernels is not None:
+            geo = geo._replace(env_kernels={k: to_device(v, dtype)
+                                            for k, v in geo.env_kernels.items()})
+        self.geometry = geo
         self.pixel_index = np.asarray(self.geometry.pixel_index)
 
     @property
@@ -338,10 +345,11 @@ def _prepare_key(scene: Scene, base_dir):
 @recent(max_items=8, max_bytes=KEEP_BYTES)
 @advice_off  # large short-lived NumPy arrays (``fitter.hugepages``)
 @one_blas_thread
-def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
+def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False, stencil: bool = True):
     """Material-independent arrays of a scene (shared by every material).
 
-    ``env_light``: tabulate the environment as light (for brdf lobes).
+    ``env_light``: tabulate the environment as light (for brdf lobes); ``stencil``:
+    with the sky stencil's table (not where every lobe is ``Lobe.stencil_free``).
     """
     env64 = load_environment(scene.environment, base_dir)
     lighting = None
@@ -350,12 +358,14 @@ def _prepare(scene: Scene, dtype, base_dir, env_light: bool = False):
 
         lighting = env_lights(scene.environment.type, env64.image,  # (kept with it: envlight)
                               np.asarray(env64.constant))
-    geo = build_geometry(scene, scene.environment.type, env64, lighting)
+    geo = build_geometry(scene, scene.environment.type, env64, lighting, stencil=stencil)
     # float32 renders still get geometry computed in float64, then rounded.
     cast = lambda a: to_device(a, dtype) if jnp.result_type(a).kind == "f" \
         else to_device(a)  # noqa: E731
     sphere = (to_device(scene.sphere.center, dtype), to_device(scene.sphere.radius, dtype))
-    return jax.tree_util.tree_map(cast, geo), jax.tree_util.tree_map(cast, env64), sphere
+    # (the env samples stay on the host, for ``with_kernels``)
+    dev = jax.tree_util.tree_map(cast, geo._replace(env_samples=None))
+    return dev._replace(env_samples=geo.env_samples), jax.tree_util.tree_map(cast, env64), sphere
 
 
 @recent(max_items=16, max_bytes=KEEP_BYTES)

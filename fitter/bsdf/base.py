@@ -27,13 +27,14 @@ A lobe is one of two kinds:
   evaluates it at every solver step. ``tests/test_stability.py`` checks every
   ``shape_grad`` against ``jax.jacfwd`` of ``shape``.
   Optionally ``uniform(p, opts)`` is the part of the shape that is the same
-  for every pair of directions (Lambert's 1/pi, Oren-Nayar's A/pi) and
-  ``rest(p, opts, c)`` the remainder, shape = uniform + rest (None: the shape
-  is uniform), with ``rest_grad`` as ``shape_grad``: an environment's sky
-  lights the uniform part through its irradiance summed over the map
-  (``fitter.irradiance``), the sky stencil only the rest. A lobe whose rest
-  (or shape) the stencil sums less accurately than its default states its
-  measured ``stencil_accuracy`` (relative; the stated errors take it).
+  for every pair of directions (Lambert's 1/pi, Oren-Nayar's A/pi), and
+  ``kernel_factor(p, opts)`` x ``kernel(c)`` the rest, a parameter factor
+  times a parameter-free function of the direction pair, of ``Cosines``'
+  cos_i, cos_o and cos_io only (Oren-Nayar's B/pi x its angular term; none:
+  the shape is uniform): an environment's sky lights
+  both through sums over the map made once per scene (``fitter.irradiance``:
+  the irradiance, and per pixel the kernel's own), not through the sky stencil,
+  which sums the shapes of the other lobes.
 * ``"specular"``: a delta lobe (mirror, smooth dielectric) that only sees the
   environment; ``radiance(p, opts, hit, env) -> (..., 3)`` returns the
   outgoing radiance towards the camera (``hit``: a ``SurfaceHit``; ``env``: a
@@ -351,9 +352,13 @@ class Lobe:
     interior: Callable[[dict, dict, dict], dict] | None = None
     complex_index: Callable[[dict], tuple | None] | None = None
     uniform: Callable[[dict, dict], Any] | None = None
-    rest: Callable | None = None
-    rest_grad: Callable | None = None
-    stencil_accuracy: float | None = None
+    kernel_factor: Callable[[dict, dict], Any] | None = None
+    kernel: Callable | None = None
+
+    @property
+    def stencil_free(self) -> bool:
+        """Whether the sky lights this lobe without the stencil (``uniform``, ``kernel``)."""
+        return self.kind == "brdf" and self.uniform is not None
 
     def params_for(self, opts: Mapping[str, Any]) -> tuple[Param, ...]:
         """The parameters under options ``opts`` (missing options: their defaults)."""

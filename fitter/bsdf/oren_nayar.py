@@ -46,41 +46,24 @@ def _uniform(p, opts):
     return coefficients(p["sigma"])[0] / jnp.pi
 
 
-def _rest(p, opts, c):
-    return coefficients(p["sigma"])[1] * _term(c) / jnp.pi
+def _kernel_factor(p, opts):
+    """B / pi: the factor of the angular term (``_term``)."""
+    return coefficients(p["sigma"])[1] / jnp.pi
 
 
 def _shape(p, opts, c):
-    return _uniform(p, opts) + _rest(p, opts, c)
-
-
-def _derivatives(sigma):
-    """(dA/dsigma, dB/dsigma) = (-0.33 sigma / (sigma^2 + 0.33)^2,
-    0.081 sigma / (sigma^2 + 0.09)^2)."""
-    s2 = sigma * sigma
-    return -0.33 * sigma / ((s2 + 0.33) * (s2 + 0.33)), 0.081 * sigma / ((s2 + 0.09) * (s2 + 0.09))
-
-
-def _rest_grad(p, opts, c):
-    """The rest and d rest / d sigma (``Lobe.rest_grad``)."""
-    term = _term(c)
-    return (coefficients(p["sigma"])[1] * term / jnp.pi,
-            {"sigma": _derivatives(p["sigma"])[1] * term / jnp.pi})
+    return _uniform(p, opts) + _kernel_factor(p, opts) * _term(c)
 
 
 def _shape_grad(p, opts, c):
-    """Shape and d shape / d sigma (``Lobe.shape_grad``)."""
-    (a, b), (da, db), term = coefficients(p["sigma"]), _derivatives(p["sigma"]), _term(c)
+    """Shape and d shape / d sigma (``Lobe.shape_grad``): dA/dsigma =
+    -0.33 sigma / (sigma^2 + 0.33)^2, dB/dsigma = 0.081 sigma / (sigma^2 + 0.09)^2."""
+    sigma = p["sigma"]
+    s2 = sigma * sigma
+    (a, b), term = coefficients(sigma), _term(c)
+    da = -0.33 * sigma / ((s2 + 0.33) * (s2 + 0.33))
+    db = 0.081 * sigma / ((s2 + 0.09) * (s2 + 0.09))
     return (a + b * term) / jnp.pi, {"sigma": (da + db * term) / jnp.pi}
-
-
-#: The sky stencil's relative error of the B term under an environment (the A term is
-#: lit by the summed irradiance): against a brute-force integral over the probe's sky
-#: (``tests/test_irradiance.py``), rms 1.6 %, at most 5.2 % (sigma 0.35 and 0.6;
-#: under a constant sky 0.14 %, 0.4 %: the radiance across the stencil's wide outer
-#: cells, which this broad term weighs, not its quadrature). Its share of the lobe is
-#: small (~6 % at sigma = 0.6): the whole term within 0.28 %.
-STENCIL_ACCURACY = 0.03
 
 
 def _mitsuba(p, opts):
@@ -133,9 +116,8 @@ LOBE = Lobe(
     shape=_shape,
     shape_grad=_shape_grad,
     uniform=_uniform,
-    rest=_rest,
-    rest_grad=_rest_grad,
-    stencil_accuracy=STENCIL_ACCURACY,
+    kernel_factor=_kernel_factor,
+    kernel=_term,
     doc="lecture's A/B form; σ = std-dev of the facet slope angle; σ = 0 is Lambert exactly",
     mitsuba=MitsubaMapping(_mitsuba, plugins={"fitter_oren_nayar": _plugin}),
     hints=Hints(

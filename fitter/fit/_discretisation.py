@@ -21,9 +21,9 @@ triple and, at ``envlight.Detail.finer()``, its tabulation doubles (measured
 at 128^2 env_plastic: 52 s of a 72 s fit, peak RSS 4.8 GB, against 13 s and
 1.3 GB without). Instead, its ring discretisation is compared with a stencil
 of half the rings (``ring_error``, Richardson: the difference / 3), and its
-measured accuracy (``SKY_STENCIL_ACCURACY``, per lobe ``Lobe.stencil_accuracy``;
-the uniform parts' summed irradiance, ``IRRADIANCE_ACCURACY``) times the fitted
-sky term's parts is propagated the same way, all independent.
+measured accuracy (``SKY_STENCIL_ACCURACY``; the parts summed over the map,
+``IRRADIANCE_ACCURACY`` and ``KERNEL_ACCURACY``) times the fitted sky term's
+parts is propagated the same way, all independent.
 Cost: finer geometries, renders of sampled pixels, one solve for every shift
 with the Jacobian already made (``benchmarks/discretisation_cost.py``).
 """
@@ -40,9 +40,9 @@ from .._keep import hold, nbytes, recent
 from .._math import to_device
 from ..environment import load_environment
 from ..geometry import build_geometry
-from ..material import EXPOSURE_KEY, Material, lobe_params
+from ..material import EXPOSURE_KEY, Material
 from ..render import KEEP_BYTES
-from . import _adequacy, _renders
+from . import _adequacy, _renders, _sky
 from ._problem import user_values
 
 #: The finer model's sub-pixel samples per axis: 2k, at most this.
@@ -58,8 +58,7 @@ FINER_SUN = (4, 16)
 #: The fitted model's sun cells (``envlight``'s defaults), as ``_lighting`` takes them.
 SUN = (envlight.SUN_CELL, envlight.SUN_SUB)
 #: The sky stencil (not refined): its measured accuracy, stated as that relative error of
-#: the part of each lobe's sky term it sums (``Lobe.stencil_accuracy`` where a lobe
-#: states its own): against a brute-force hemisphere quadrature Beckmann m = 0.1 (the
+#: each lobe's sky term it sums: against a brute-force hemisphere quadrature Beckmann m = 0.1 (the
 #: narrowest shipped lobe's bound) is within 0.33 % up to 89.5 degrees
 #: (``tests/test_envlight_reference.py`` asserts 0.5 %), against Mitsuba at
 #: 4096 spp Torrance-Sparrow m = 0.1 relative RMSE 0.62 % over a 0.38 %
@@ -73,6 +72,11 @@ SKY_STENCIL_ACCURACY = 0.005
 #: 0.23 % over a 0.20 % noise floor, mean 0.00 %, limb -0.04 % (benchmarks/README.md,
 #: envlight; through the sky stencil it had been 0.41 %, mean -0.12 %).
 IRRADIANCE_ACCURACY = 0.001
+#: The lobes' kernel parts (Oren-Nayar's B rho/pi x its angular term) summed over the
+#: map per env sample (``irradiance.kernel_sums``), stated to this relative accuracy:
+#: against a brute-force integral over the probe's sky, a 24^2 sphere's interior
+#: pixels, at most 9.0e-3, rms 1.7e-3 (300 random normals and views: 4.5e-3, 6.3e-4).
+KERNEL_ACCURACY = 0.01
 
 #: The finer model rendered in float32 (``single``) where every lobe has
 #: ``single_precision`` and no environment lights the lobes: its difference
@@ -193,9 +197,10 @@ def prefetch(problem) -> None:
         jobs.append((scene, FINER_SUN, r.material, flat, False, False))
     if flat.size * sum(s.supersampling**2 for s, *_ in jobs) > PREFETCH_SAMPLES:
         return
-    if lit and flat.size:
+    stencil = _sky.stencil_lobes(r.material)
+    if lit and flat.size and stencil:
         jobs.append((scene.replace(lights=()), _half_rings(),
-                     _lobes(r.material, r.material.opaque), flat[::RING_STRIDE], True, False))
+                     _sky.lobes_alone(r.material, stencil), flat[::RING_STRIDE], True, False))
     base = problem.base_dir
     keys = [_geometry_key(s, base, r.env_type, cells or False, px, f32)
             for s, cells, _, px, _, f32 in jobs]
@@ -208,13 +213,13 @@ def prefetch(problem) -> None:
         k: v for k, v in problem.init_full.items() if k not in free}))
     boxes: list = [[None, None] for _ in jobs]
     sky_box: list = [None, None]
-    sky_ahead = lit and problem.geometry.has_sky
+    sky_ahead = lit and problem.geometry.has_sky and bool(stencil)
 
     def make():
         try:
             if sky_ahead:  # ``sky_terms``' render (quick): first
-                mats = _sky_materials(r.material)
-                args, key = _renders.args_and_key(params, _dark(problem.geometry), r.env,
+                mats = _sky.sky_materials(r.material)
+                args, key = _renders.args_and_key(params, _sky.dark(problem.geometry), r.env,
                                                   _sphere(scene), mats, r.env_type)
                 sky_box[1] = key, _renders.compile_render(args, mats, r.env_type, key)
             for (s, cells, material, px, sky, one), box in zip(jobs, boxes):
@@ -225,7 +230,7 @@ def prefetch(problem) -> None:
                     break
                 box[0] = _prepared(build_geometry(s, r.env_type, env64, lighting, pixels=px), px,
                                    one)
-                geo = _dark(box[0][0]) if sky else box[0][0]
+                geo = _sky.dark(box[0][0]) if sky else box[0][0]
                 args, key = _renders.args_and_key(params, geo, env64, _sphere(scene), material,
                                                   r.env_type, one)
                 box[1] = key, _renders.compile_render(args, material, r.env_type, key, one)
@@ -272,8 +277,8 @@ def _prepared(geo, flat, single: bool = False):
     sub = geo if np.array_equal(rows, np.arange(index.size)) else geo.subset(rows)
     coverage = np.zeros(flat.size)
     coverage[found] = np.asarray(sub.hit, dtype=np.float64) @ np.asarray(sub.sample_weight)
-    sub = jax.tree_util.tree_map(lambda a: _renders.on_device(a, single),
-                                 sub._replace(pixel_index=None, background_image=None))
+    sub = jax.tree_util.tree_map(lambda a: _renders.on_device(a, single), sub._replace(
+        pixel_index=None, background_image=None, env_samples=None))
     return sub, found, coverage
 
 
@@ -360,76 +365,41 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
     return vals, coverage
 
 
-def sky_terms(data, params, material, env_type) -> tuple[np.ndarray, np.ndarray]:
-    """(the fitted model's sky term (P, 3) of its opaque lobes, the stated bounds of
-    its error (k, P, 3), independent): ``IRRADIANCE_ACCURACY`` x the lobes' uniform
-    parts (``Lobe.uniform``, lit by the summed irradiance) and, per lobe with a
-    part the sky stencil sums, its ``Lobe.stencil_accuracy`` (default
-    ``SKY_STENCIL_ACCURACY``) x that part. Zeros and (0, P, 3) when the environment
+def sky_terms(data, params, material, env_type) -> tuple:
+    """(the fitted model's sky term (P, 3) of its opaque lobes, its part the sky
+    stencil sums (P, 3), the stated bounds of its error (k, P, 3), independent):
+    ``IRRADIANCE_ACCURACY`` x the lobes' uniform
+    parts (``Lobe.uniform``), ``KERNEL_ACCURACY`` x their kernel parts
+    (``Lobe.kernel``; both summed over the map) and ``SKY_STENCIL_ACCURACY`` x each
+    other lobe's (the sky stencil's). Zeros and (0, P, 3) when the environment
     lights none. The model minus the sky term is the model without it."""
     zero = np.zeros(np.shape(data.geometry.background))
-    if not (material.opaque and data.geometry.has_sky):
-        return zero, np.zeros((0,) + zero.shape)
-    _joined(SKY_TERMS)  # its executable, if ``prefetch`` compiled it
+    if not (material.opaque and data.geometry.sky_lit):
+        return zero, zero, np.zeros((0,) + zero.shape)
     host = _host_params(params)
-    # to_device: jnp.asarray compiled a conversion kernel per shape on a first run
-    params = {k: to_device(np.asarray(v), data.target.dtype) for k, v in params.items()}
-    per_lobe = _sky_terms(params, data.geometry, data.env, data.sphere, material, env_type)
-    bounds, uniform = [], np.zeros_like(zero)
-    for lobe, term in zip(_opaque(material), per_lobe):
-        part = _uniform_part(data.geometry, host, material, lobe)
-        uniform += part
-        if lobe.uniform is None or lobe.rest is not None:
-            accuracy = (SKY_STENCIL_ACCURACY if lobe.stencil_accuracy is None
-                        else lobe.stencil_accuracy)
-            bounds.append(accuracy * (term - part))
-    if any(lobe.uniform is not None for lobe in _opaque(material)):
-        bounds.append(IRRADIANCE_ACCURACY * uniform)
-    return per_lobe.sum(0), np.stack(bounds)
-
-
-def _opaque(material) -> list:
-    return [lb for lb in material.lobe_objects if lb.name in material.opaque]
-
-
-def _uniform_part(geo, params, material, lobe) -> np.ndarray:
-    """``lobe``'s uniform part under the sky (P, 3): scale x uniform x the pixel's
-    irradiance, times the exposure if any (``render._env_unit``); 0 without one."""
-    irr = np.asarray(geo.env_irradiance, dtype=np.float64)
-    if lobe.uniform is None:
-        return np.zeros_like(irr)
-    p = lobe_params(params, lobe.name)
-    u = lobe.uniform({k: v for k, v in p.items() if k != lobe.scale},
-                     material.options_of(lobe.name))
-    out = np.asarray(p[lobe.scale], dtype=np.float64) * float(u) * irr
-    return out * float(params[EXPOSURE_KEY]) if material.exposure else out
-
-
-def _sky_materials(material):
-    """Each opaque lobe of ``material`` alone (a tuple: one executable renders them)."""
-    return tuple(_lobes(material, (lb.name,)) for lb in _opaque(material))
-
-
-def _lobes(material, names) -> Material:
-    """``material``'s lobes ``names`` alone, with their options (no exposure)."""
-    return Material.make(names, {k: v for k, v in material.options
-                                 if k.split(".")[0] in names})
-
-
-def _dark(geo):
-    """``geo`` with its lights, sun cells and background dropped: the sky term alone."""
-    return geo._replace(
-        cosines=type(geo.cosines)(*(a[:0] for a in geo.cosines)),
-        light_weight=geo.light_weight[:0], light_color=geo.light_color[:0], sun=(),
-        background=to_device(np.zeros(np.shape(geo.background)), geo.background.dtype))
+    summed = [_sky.summed_parts(data.geometry, host, material, lb)
+              for lb in _sky.opaque_lobes(material) if lb.stencil_free]
+    bounds = [IRRADIANCE_ACCURACY * sum(u for u, _ in summed)] if summed else []
+    if any(np.any(k) for _, k in summed):
+        bounds.append(KERNEL_ACCURACY * sum(k for _, k in summed))
+    sky, stencil = sum(u + k for u, k in summed) + zero, zero
+    if _sky.stencil_lobes(material):
+        _joined(SKY_TERMS)  # its executable, if ``prefetch`` compiled it
+        # to_device: jnp.asarray compiled a conversion kernel per shape on a first run
+        params = {k: to_device(np.asarray(v), data.target.dtype) for k, v in params.items()}
+        per_lobe = _sky_terms(params, data.geometry, data.env, data.sphere, material, env_type)
+        bounds += [SKY_STENCIL_ACCURACY * term for term in per_lobe]
+        stencil = per_lobe.sum(0)
+    return sky + stencil, stencil, np.stack(bounds)
 
 
 def _sky_terms(params, geo, env, sphere, material, env_type, each: bool = True) -> np.ndarray:
-    """The sky term (k, P, 3) of each of ``material``'s opaque lobes on ``geo``
-    (``_dark``; not ``each``: of them together, (P, 3)), times the exposure if any;
-    ``params`` as ``_renders.render`` takes them."""
-    lobes = _sky_materials(material) if each else _lobes(material, material.opaque)
-    sky = _renders.render(params, _dark(geo), env, sphere, lobes, env_type)
+    """The sky term (k, P, 3) of each of ``material``'s lobes the stencil sums on
+    ``geo`` (``_sky.dark``; not ``each``: of them together, (P, 3)), times the
+    exposure if any; ``params`` as ``_renders.render`` takes them."""
+    lobes = (_sky.sky_materials(material) if each
+             else _sky.lobes_alone(material, _sky.stencil_lobes(material)))
+    sky = _renders.render(params, _sky.dark(geo), env, sphere, lobes, env_type)
     sky = sky.reshape((-1,) + np.shape(sky)[-2:]) if each else sky
     return sky * float(params[EXPOSURE_KEY]) if material.exposure else sky
 
@@ -461,14 +431,15 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
     """The sky term's ring-discretisation error at the fitted pixels ``rows``
     (M, 3): (``sky`` - the same at half the rings) / ``RING_RICHARDSON`` at every
     ``RING_STRIDE``-th row, times ``RING_STRIDE`` (a sum over them estimates the
-    sum over ``rows``), 0 at the others; ``sky`` (M, 3) is the fitted sky term
-    there (``sky_terms``). Zeros where the environment
-    lights no opaque lobe."""
+    sum over ``rows``), 0 at the others; ``sky`` (M, 3) is the part of the fitted
+    sky term the stencil sums there (``sky_terms``). Zeros where the environment
+    lights no lobe the stencil sums."""
     r = problem.renderer
     scene, material, env_type = r.scene, r.material, r.env_type
     env64 = load_environment(scene.environment, problem.base_dir)
     lighting = (_lighting(scene.environment, problem.base_dir, _half_rings())
-                if envlight.lit_by_environment(scene, material) else None)
+                if envlight.lit_by_environment(scene, material) and _sky.stencil_lobes(material)
+                else None)
     pick = np.arange(0, len(rows), RING_STRIDE)
     if lighting is None or not pick.size:
         return np.zeros(np.shape(sky))

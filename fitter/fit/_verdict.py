@@ -311,7 +311,8 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
         _adequacy.pixel_regions(data.geometry), problem.renderer.scene))
     finer = np.zeros_like(model)
     coverage = np.zeros(model.shape[0])
-    sky_term, sky = _discretisation.sky_terms(data, params, spec.material, spec.env_type)
+    sky_term, stencil, sky = _discretisation.sky_terms(data, params, spec.material,
+                                                       spec.env_type)
     coarse = model - sky_term  # the model without its sky term
     finer[rows], coverage[rows] = _discretisation.finer_values(problem, params, rows,
                                                                coarse[rows])
@@ -328,7 +329,7 @@ def _with_systematic(problem: Problem, spec: Spec, data: Data, z, cov_stat, para
     changes = [diff]
     if data.geometry.has_sky:  # (without a sky the ring error is zero: no column)
         rings = np.zeros_like(model)
-        rings[rows] = _discretisation.ring_error(problem, params, rows, sky_term[rows])
+        rings[rows] = _discretisation.ring_error(problem, params, rows, stencil[rows])
         changes.append(rings)
     # One least-squares solve for every shift; independent, they add in quadrature.
     deltas = _discretisation.shift(Js, np.stack(

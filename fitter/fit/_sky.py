@@ -1,0 +1,58 @@
+"""The parts of an environment's sky term, by how the sky lights each opaque lobe.
+
+A lobe with ``Lobe.uniform`` (and ``Lobe.kernel``) is lit by sums over the map
+made once per scene (``fitter.irradiance``), the others by the sky stencil
+(``fitter.skystencil``), per solver step. The stated errors
+(``_discretisation.sky_terms``) bound each part by its own measured accuracy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._math import to_device
+from ..material import EXPOSURE_KEY, Material, lobe_params
+
+
+def opaque_lobes(material) -> list:
+    """``material``'s opaque (brdf) lobe objects."""
+    return [lb for lb in material.lobe_objects if lb.name in material.opaque]
+
+
+def stencil_lobes(material) -> list:
+    """Names of the opaque lobes the sky stencil sums (not ``Lobe.stencil_free``)."""
+    return [lb.name for lb in opaque_lobes(material) if not lb.stencil_free]
+
+
+def summed_parts(geo, params, material, lobe) -> tuple[np.ndarray, np.ndarray]:
+    """``lobe``'s uniform and kernel parts under the sky (P, 3) each: scale x uniform x
+    the pixel's irradiance, scale x the kernel's factor x its sum (``render._env_unit``),
+    times the exposure if any."""
+    p = lobe_params(params, lobe.name)
+    q, opts = {k: v for k, v in p.items() if k != lobe.scale}, material.options_of(lobe.name)
+    scale = np.asarray(p[lobe.scale], dtype=np.float64)
+    scale = scale * float(params[EXPOSURE_KEY]) if material.exposure else scale
+    uniform = scale * float(lobe.uniform(q, opts)) * np.asarray(geo.env_irradiance, np.float64)
+    if lobe.kernel is None:
+        return uniform, np.zeros_like(uniform)
+    return uniform, scale * float(lobe.kernel_factor(q, opts)) * np.asarray(
+        geo.env_kernels[lobe.name], np.float64)
+
+
+def sky_materials(material):
+    """Each opaque lobe of ``material`` the stencil sums, alone (a tuple: one executable)."""
+    return tuple(lobes_alone(material, (name,)) for name in stencil_lobes(material))
+
+
+def lobes_alone(material, names) -> Material:
+    """``material``'s lobes ``names`` alone, with their options (no exposure)."""
+    return Material.make(names, {k: v for k, v in material.options
+                                 if k.split(".")[0] in names})
+
+
+def dark(geo):
+    """``geo`` with its lights, sun cells and background dropped: the sky term alone."""
+    return geo._replace(
+        cosines=type(geo.cosines)(*(a[:0] for a in geo.cosines)),
+        light_weight=geo.light_weight[:0], light_color=geo.light_color[:0], sun=(),
+        background=to_device(np.zeros(np.shape(geo.background)), geo.background.dtype))
