@@ -88,7 +88,7 @@ class Geometry(NamedTuple):
         light_color: (L, 3) RGB intensity (W/sr) or irradiance (W/m^2).
         background: (P, 3) weighted sum of what missing samples see.
         background_image: (H*W, 3) the image with no sphere.
-        env_index: (R,) int, active-pixel row of each env sample (pixel
+        env_index: (R,) int32, active-pixel row of each env sample (pixel
             centres inside the sphere, hitting sub-pixel samples on its
             silhouette and limb; ``fitter.envlight``), -1 for padding, past
             the last row for a pixel a ``subset`` dropped; (0,)
@@ -182,7 +182,7 @@ class Geometry(NamedTuple):
         # of a dropped pixel points past the last row, where the renderer's scatter drops it.
         idx = np.asarray(self.env_index)
         env_rows = np.where(idx >= 0, inv[np.maximum(idx, 0)], -1)
-        env_rows = np.where((idx >= 0) & (env_rows < 0), len(rows), env_rows)
+        env_rows = np.where((idx >= 0) & (env_rows < 0), len(rows), env_rows).astype(np.int32)
         sun = SunCells.of((inv[i][inv[i] >= 0], cs.map(lambda a: a[:, inv[i] >= 0]),  # noqa: B023
                            wt[:, inv[i] >= 0], col)
                           for i, cs, wt, col in self.sun.groups()) if self.sun else ()
@@ -247,7 +247,7 @@ def _own_samples(geo: Geometry, env_rows, n_rows: int) -> dict:
     pad = size - window.shape[0]
     order = np.concatenate([order, np.full(pad * block, -1)])
     src = keep[np.maximum(order, 0)]
-    return dict(env_index=np.where(order < 0, -1, env_rows[src]),
+    return dict(env_index=np.where(order < 0, -1, env_rows[src]).astype(np.int32),
                 env_node=np.concatenate([window, np.broadcast_to(np.arange(s, dtype=window.dtype),
                                                                  (pad, s))]),
                 env_frac=np.concatenate([pos, np.zeros(pad * block)]),
@@ -426,8 +426,10 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     if lighting is None or lighting.sky is None:
         e_irr, samples = None, None
         sun = sun if lighting is not None else ()
+    # (int32 rows: a float32 fit traces without 64-bit types, where int64 warned)
     return Geometry(pixel_index, hit, weight, pos, normal, d_a, cos, light_weight, color,
-                    background, background_image, rows, node, frac, e_c, e_cos, e_nw, e_irr,
+                    background, background_image, np.asarray(rows, np.int32), node, frac, e_c,
+                    e_cos, e_nw, e_irr,
                     sun, env_samples=samples)
 
 

@@ -19,6 +19,12 @@ from .bsdf.base import UNLIT, Cosines, cosines
 from .envlight import LUMINANCE
 
 
+def _rows(index) -> np.ndarray:
+    """Active-pixel rows as int32: a float32 fit traces without 64-bit types, where
+    an int64 index warned on every trace that it was truncated."""
+    return np.asarray(index, dtype=np.int32)
+
+
 class SunCells(NamedTuple):
     """An environment's sun cells as directional lights on their own samples
     (``sun_samples``): groups i of L_i lights x Q_i samples, stored flat, group
@@ -27,7 +33,7 @@ class SunCells(NamedTuple):
     env_plastic's ~840 traced operations).
 
     Attributes:
-        index: (sum Q_i,) each sample's active-pixel row.
+        index: (sum Q_i,) int32, each sample's active-pixel row.
         cosines: ``Cosines`` (sum L_i Q_i,) of each (light, sample) pair, each
             group's (L_i, Q_i) flattened; no cotangents (a lobe takes them from
             the cosines: these arrays are most of an env-lit fit's memory).
@@ -49,7 +55,7 @@ class SunCells(NamedTuple):
             return ()
         flat = (None if f[0] is None else np.concatenate([np.reshape(a, -1) for a in f])
                 for f in zip(*(g[1] for g in groups)))
-        return cls(np.concatenate([np.asarray(g[0]) for g in groups]), Cosines(*flat),
+        return cls(_rows(np.concatenate([np.asarray(g[0]) for g in groups])), Cosines(*flat),
                    tuple(g[2] for g in groups), tuple(g[3] for g in groups))
 
     def groups(self):
@@ -127,8 +133,8 @@ def _sun_cells(groups) -> SunCells | tuple:
                 out[:, s:s + step] = np.where(lit, a, b)
             weight[:, s:s + step] = np.where(lit, w[s:s + step] * cos.cos_i[:, s:s + step], 0.0)
         weights.append(weight)
-    return SunCells(np.concatenate([np.asarray(g[3]) for g in groups]), flat, tuple(weights),
-                    tuple(np.asarray(g[5], np.float64) for g in groups))
+    return SunCells(_rows(np.concatenate([np.asarray(g[3]) for g in groups])), flat,
+                    tuple(weights), tuple(np.asarray(g[5], np.float64) for g in groups))
 
 
 def _centroid(sun_dir, sun_irradiance):

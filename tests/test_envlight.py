@@ -592,3 +592,22 @@ def test_a_map_changed_in_place_gets_new_lights():
     img[4:6, 8:10] = 900.0  # a sun now, in the same (writable) array
     after = envlight.env_lights("envmap", img, np.zeros(3))
     assert before.sun_dir.shape[0] == 0 and after.sun_dir.shape[0] > 0
+
+
+def test_a_float32_fit_under_a_sun_traces_without_64_bit_index_warnings(sun_probe):
+    """The sky's and sun's sample rows are int32: a float32 fit traces without
+    64-bit types, where their int64 indices warned "truncated to dtype int32" on
+    every trace (a UserWarning the user could do nothing about)."""
+    import warnings
+
+    import fitter
+
+    scene = SMALL.replace(width=20, height=20, supersampling=2,
+                          environment=Environment(type="envmap", file=sun_probe))
+    params = {"lambert.rho_d": [0.5, 0.4, 0.3], "torrance_sparrow.m": 0.2}
+    target = np.asarray(render(params, scene))
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*truncated to dtype int32.*")
+        res = fitter.fit(target, scene, "lambert+torrance_sparrow", dtype=jnp.float32,
+                         fixed={"torrance_sparrow.eta": 1.5})
+    assert res.status == "converged", res.message
