@@ -355,3 +355,22 @@ def test_points_padded_to_whole_batches_are_each_points_residuals(monkeypatch):
     for z, row in zip(zs, batched):
         alone = _compile.residuals_at_points(problem.spec, z[None], data)[0]
         np.testing.assert_allclose(row, alone, rtol=1e-12, atol=1e-15)
+
+
+def test_a_float32_fits_profile_rows_trace_without_64_bit_index_warnings():
+    """The rows picked inside the profile's executable are int32: a float32 fit
+    traces without 64-bit types, where int64 rows warned "truncated to dtype
+    int32" on every first run (the shipped phong, dielectric, bright_phong and
+    extreme_grazing cases in float32)."""
+    import warnings
+
+    import jax.numpy as jnp
+
+    scene = fitter.Scene(width=96, height=96, supersampling=1, lights=LIGHTS)
+    truth = {"phong.rho_s": [0.4, 0.4, 0.4], "phong.e": 50.0}
+    target = np.asarray(fitter.render(truth, scene))
+    target = target + np.random.default_rng(0).normal(0.0, 1e-3, target.shape)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*truncated to dtype int32.*")
+        res = fitter.fit(target, scene, "phong", dtype=jnp.float32)
+    assert res.status == "converged", res.message

@@ -384,7 +384,8 @@ def residuals_of_rows(spec: Spec, zs, data, rows, single: bool = False) -> np.nd
     """Residuals (k, 3M) of the fitted pixels ``rows`` (M,) at each point of
     ``zs`` (k, n), float64 on the host (``residuals_at_rows``; ``single``: as
     ``residuals_at``)."""
-    zs, rows = jnp.asarray(zs, dtype=data.target.dtype), to_device(np.asarray(rows))
+    # (int32 rows: a float32 fit traces without 64-bit types, where int64 warned)
+    zs, rows = jnp.asarray(zs, dtype=data.target.dtype), to_device(np.asarray(rows, np.int32))
     exe, _ = compiled("rows", spec, (zs, data, rows), **_single(single))
     return np.asarray(exe(zs, data, rows), dtype=np.float64)
 
