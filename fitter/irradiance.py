@@ -51,13 +51,13 @@ def _tent_weights(rows: int) -> np.ndarray:
     return w
 
 
-def _source(levels) -> np.ndarray:
-    """The finest level at most ``COLUMNS`` wide, resampled on its own bilinear surface
-    to at least ``ROWS`` x ``COLUMNS`` nodes: (rows, columns, 3)."""
-    img = next(lv for lv in levels if lv.shape[1] <= COLUMNS)
+def _source(levels, rows: int = ROWS, columns: int = COLUMNS) -> np.ndarray:
+    """The finest level at most ``columns`` wide, resampled on its own bilinear surface
+    to at least ``rows`` x ``columns`` nodes: (rows', columns', 3)."""
+    img = next(lv for lv in levels if lv.shape[1] <= columns)
     h, w = img.shape[:2]
-    rows = (h - 1) * int(np.ceil((ROWS - 1) / (h - 1))) + 1
-    cols = w * int(np.ceil(COLUMNS / w))
+    rows = (h - 1) * int(np.ceil((rows - 1) / (h - 1))) + 1
+    cols = w * int(np.ceil(columns / w))
     u = (np.arange(cols) + 0.5) / cols
     v = np.arange(rows) / (rows - 1)
     return bilinear(np.asarray(img, np.float64), u[None, :], v[:, None])
@@ -93,16 +93,20 @@ def irradiance(grid: np.ndarray, normals) -> np.ndarray:
     return bilinear(grid, u, v)
 
 
-#: ``kernel_sums`` sums the map's finest level at most this wide, at its texel nodes.
+#: ``kernel_sums`` sums the map's finest level at most this wide, at its texel nodes
+#: (a smaller map resampled to ``KERNEL_ROWS`` x this: a constant sky's 2 x 4 texels
+#: as nodes had left Oren-Nayar's B term 7 % off).
 KERNEL_COLUMNS = 128
+KERNEL_ROWS = 64
 #: Env samples per chunk of ``kernel_sums`` (x the level's directions: 4 M pairs).
 KERNEL_CHUNK = 512
 
 
 def _nodes(levels):
     """(directions (T, 3), radiance x tent solid angle (T, 3)) of the finest level at
-    most ``KERNEL_COLUMNS`` wide, at its own nodes."""
-    img = np.asarray(next(lv for lv in levels if lv.shape[1] <= KERNEL_COLUMNS), np.float64)
+    most ``KERNEL_COLUMNS`` wide, at its own nodes (``_source``: at least
+    ``KERNEL_ROWS`` x ``KERNEL_COLUMNS`` of them)."""
+    img = _source(levels, KERNEL_ROWS, KERNEL_COLUMNS)
     h, w = img.shape[:2]
     u, v = np.meshgrid((np.arange(w) + 0.5) / w, np.arange(h) / (h - 1))
     weighted = img * (_tent_weights(h) * 2.0 * np.pi / w)[:, None, None]
