@@ -218,7 +218,7 @@ def prefetch(problem) -> None:
     def make():
         try:
             if sky_ahead:  # ``sky_terms``' render (quick): first
-                mats = _sky.sky_materials(r.material)
+                mats = _sky.lobes_alone(r.material, stencil)
                 args, key = _renders.args_and_key(params, _sky.dark(problem.geometry), r.env,
                                                   _sphere(scene), mats, r.env_type)
                 sky_box[1] = key, _renders.compile_render(args, mats, r.env_type, key)
@@ -370,9 +370,10 @@ def sky_terms(data, params, material, env_type) -> tuple:
     stencil sums (P, 3), the stated bounds of its error (k, P, 3), independent):
     ``IRRADIANCE_ACCURACY`` x the lobes' uniform
     parts (``Lobe.uniform``), ``KERNEL_ACCURACY`` x their kernel parts
-    (``Lobe.kernel``; both summed over the map) and ``SKY_STENCIL_ACCURACY`` x each
-    other lobe's (the sky stencil's). Zeros and (0, P, 3) when the environment
-    lights none. The model minus the sky term is the model without it."""
+    (``Lobe.kernel``; both summed over the map) and ``SKY_STENCIL_ACCURACY`` x the
+    other lobes' together (the stencil's errors of two lobes share its cells). Zeros
+    and (0, P, 3) when the environment lights none. The model minus the sky term is
+    the model without it."""
     zero = np.zeros(np.shape(data.geometry.background))
     if not (material.opaque and data.geometry.sky_lit):
         return zero, zero, np.zeros((0,) + zero.shape)
@@ -387,20 +388,17 @@ def sky_terms(data, params, material, env_type) -> tuple:
         _joined(SKY_TERMS)  # its executable, if ``prefetch`` compiled it
         # to_device: jnp.asarray compiled a conversion kernel per shape on a first run
         params = {k: to_device(np.asarray(v), data.target.dtype) for k, v in params.items()}
-        per_lobe = _sky_terms(params, data.geometry, data.env, data.sphere, material, env_type)
-        bounds += [SKY_STENCIL_ACCURACY * term for term in per_lobe]
-        stencil = per_lobe.sum(0)
+        stencil = _sky_terms(params, data.geometry, data.env, data.sphere, material, env_type)
+        bounds.append(SKY_STENCIL_ACCURACY * stencil)
     return sky + stencil, stencil, np.stack(bounds)
 
 
-def _sky_terms(params, geo, env, sphere, material, env_type, each: bool = True) -> np.ndarray:
-    """The sky term (k, P, 3) of each of ``material``'s lobes the stencil sums on
-    ``geo`` (``_sky.dark``; not ``each``: of them together, (P, 3)), times the
-    exposure if any; ``params`` as ``_renders.render`` takes them."""
-    lobes = (_sky.sky_materials(material) if each
-             else _sky.lobes_alone(material, _sky.stencil_lobes(material)))
+def _sky_terms(params, geo, env, sphere, material, env_type) -> np.ndarray:
+    """The sky term (P, 3) of ``material``'s lobes the stencil sums on ``geo``
+    (``_sky.dark``), times the exposure if any; ``params`` as ``_renders.render``
+    takes them."""
+    lobes = _sky.lobes_alone(material, _sky.stencil_lobes(material))
     sky = _renders.render(params, _sky.dark(geo), env, sphere, lobes, env_type)
-    sky = sky.reshape((-1,) + np.shape(sky)[-2:]) if each else sky
     return sky * float(params[EXPOSURE_KEY]) if material.exposure else sky
 
 
@@ -449,7 +447,7 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
         dark, problem.base_dir, env_type, _half_rings(), flat))
     half = np.zeros((pick.size, 3))
     half[found] = _sky_terms(_host_params(params), geo, env64, _sphere(scene), material,
-                             env_type, each=False)
+                             env_type)
     out = np.zeros(np.shape(sky))
     out[pick] = (np.asarray(sky, dtype=np.float64)[pick] - half) * (RING_STRIDE / RING_RICHARDSON)
     out[pick[~found]] = 0.0

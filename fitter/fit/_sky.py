@@ -39,11 +39,6 @@ def summed_parts(geo, params, material, lobe) -> tuple[np.ndarray, np.ndarray]:
         geo.env_kernels[lobe.name], np.float64)
 
 
-def sky_materials(material):
-    """Each opaque lobe of ``material`` the stencil sums, alone (a tuple: one executable)."""
-    return tuple(lobes_alone(material, (name,)) for name in stencil_lobes(material))
-
-
 def lobes_alone(material, names) -> Material:
     """``material``'s lobes ``names`` alone, with their options (no exposure)."""
     return Material.make(names, {k: v for k, v in material.options
