@@ -10,9 +10,9 @@ normalised phong (e log-uniform in [5, 500]) and a torrance_sparrow conductor
 renders the target (path, MIS, max_depth 2; cached under
 ``benchmarks/results/tmp/``), ``fitter.fit`` fits it with the defaults, and per
 parameter the table prints the error, the error in stated errors, whether it is
-beyond the issue's tolerance (rho 0.005, sigma 0.02, m 2 %, e 3 %, eta and k
-0.005) and DISHONEST where it is beyond both 3 stated errors and the tolerance in
-a converged fit that lists it identifiable.
+beyond the issue's tolerance and DISHONEST where it is beyond both 3 stated errors
+and the tolerance in a converged fit that lists it identifiable (``honesty.TOL``,
+``honesty.verdict_rows``).
 
     python benchmarks/env_sweep.py [--cases 0:16] [--size 64] [--spp 1024]
 """
@@ -28,17 +28,13 @@ import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
+sys.path.insert(0, HERE)
 CACHE = os.path.join(HERE, "results", "tmp", "env_sweep")
 
-import jax  # noqa: E402
-
-jax.config.update("jax_enable_x64", True)
+from honesty import verdict_rows  # noqa: E402 (the issue's tolerances and verdict)
 
 import fitter  # noqa: E402
 
-#: (absolute, relative) tolerance per parameter name (issue 11).
-TOL = {"rho_d": (0.005, 0), "rho_s": (0.005, 0), "sigma": (0.02, 0), "m": (0, 0.02),
-       "e": (0, 0.03), "eta": (0.005, 0), "k": (0.005, 0)}
 FAMILIES = ("plastic", "oren_nayar", "phong", "conductor")
 SMITH = {"torrance_sparrow.geometry": "smith"}
 
@@ -72,24 +68,6 @@ def draw(case: int):
         "torrance_sparrow.m": _log_uniform(rng, 0.05, 0.5)}
 
 
-def rows_of(res, truth) -> list[dict]:
-    """Per parameter: error, error / stated error, beyond tolerance, dishonest."""
-    identifiable = [k for k in res.free if k not in res.unidentifiable]
-    out = []
-    for key, t in truth.items():
-        a, rel = TOL[key.split(".")[1]]
-        t = np.asarray(t, float)
-        err = np.abs(np.asarray(res.params[key], float) - t)
-        beyond = err > a + rel * np.abs(t)
-        se = np.asarray(res.stderr.get(key, np.nan), float)
-        ratio = err / np.maximum(se, 1e-300)
-        out.append({"param": key, "err": float(err.max()), "ratio": float(np.nanmax(ratio)),
-                    "identifiable": key in identifiable, "beyond": bool(beyond.any()),
-                    "dishonest": bool(np.any(beyond & (ratio > 3)) and res.status == "converged"
-                                      and key in identifiable)})
-    return out
-
-
 def main(argv=None) -> list:
     ap = argparse.ArgumentParser()
     ap.add_argument("--cases", default="0:16", help="first:end")
@@ -118,15 +96,17 @@ def main(argv=None) -> list:
         t0 = time.perf_counter()
         res = fitter.fit(np.load(path), scene, mat, base_dir=folder)
         dt = time.perf_counter() - t0
-        rows = rows_of(res, truth)
+        rows = verdict_rows(f"case{case}", res, truth)
         results.append({"case": case, "family": family, "status": res.status, "rows": rows})
         for r in rows:
             flag = " **DISHONEST**" if r["dishonest"] else ""
-            ratio = f"{r['ratio']:.2f}" if r["identifiable"] else "unidentifiable"
+            ratio = ("unidentifiable" if r.get("unidentifiable")
+                     else f"{r['err_over_stderr']:.2f}")
             print(f"| {case} | {family} | {np.round(sun, 2).tolist()} | {res.status} | {dt:.1f} | "
                   f"{r['param']} | {r['err']:.4g} | {ratio} | "
-                  f"{'yes' if r['beyond'] else 'no'}{flag} |", flush=True)
-    beyond = sum(r["beyond"] and r["identifiable"] for c in results for r in c["rows"])
+                  f"{'yes' if r['beyond_tol'] else 'no'}{flag} |", flush=True)
+    beyond = sum(r["beyond_tol"] and not r.get("unidentifiable")
+                 for c in results for r in c["rows"])
     bad = sum(r["dishonest"] for c in results for r in c["rows"])
     print(f"\n{len(results)} cases: {beyond} identifiable parameters beyond tolerance, "
           f"{bad} dishonest")

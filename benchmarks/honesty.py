@@ -105,7 +105,7 @@ def _mismatch():
            {"torrance_sparrow.m": 0.25}, {"n_starts": 4})
 
 
-def _rows(name, res, truth):
+def verdict_rows(name, res, truth):
     rows = []
     identifiable = [k for k in res.free if k not in res.unidentifiable]
     for key, t in truth.items():
@@ -199,7 +199,7 @@ def main(argv=None):
                 out.append({"case": name, "status": f"error: {type(exc).__name__}", "rows": []})
                 print(f"{name:26s} error {exc}", flush=True)
                 continue
-            rows = _rows(name, res, truth)
+            rows = verdict_rows(name, res, truth)
             rec = {"case": name, "status": res.status, "message": res.message,
                    "warnings": res.warnings, "rows": rows, "seconds": time.perf_counter() - t0,
                    "stderr_sys": {k: np.asarray(v).tolist() for k, v in

@@ -49,17 +49,6 @@ def _miss_radiance(env_type: str, env: EnvData, d) -> np.ndarray:
     return out[:n].reshape(d.shape)
 
 
-def _sky_irradiance(sky, rows, normal, weight, n: int) -> np.ndarray:
-    """(n, 3) each active pixel's sky irradiance: its env samples' E (``rows``
-    (R,), unit ``normal`` (R, 3)) by ``fitter.irradiance``, times their weights (R,),
-    summed per pixel. The grid of E is kept with the sky's map (one per map)."""
-    from .irradiance import irradiance, irradiance_grid
-
-    grid = derived(sky.levels[0], "irradiance", lambda: irradiance_grid(sky.levels))
-    e = weight[:, None] * irradiance(grid, normal)
-    return np.stack([np.bincount(rows, e[:, c], minlength=n) for c in range(3)], -1)
-
-
 @functools.partial(jax.jit, static_argnums=3)
 def _slabs(c, src, real, block: int):
     """Rows of the sky table ``c`` (nb, B x 3, N) of the samples ``src`` (R,), zero
@@ -398,6 +387,7 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     tabulated = None
     if lighting is not None:
         from .envlight import node_geometry, sky_table
+        from .irradiance import pixel_irradiance
 
         rows, e_n, e_v, e_w = env_samples(scene, hit, t_a, o_a, d_a, weight, pixel_index)
         ok = np.sum(e_n * e_v, -1) > 0
@@ -415,7 +405,8 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
         tabulated = _beside(sky) if lighting.sky is not None and stencil else None
         sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
         if lighting.sky is not None:
-            e_irr = _sky_irradiance(lighting.sky, rows[ok], e_n[ok], e_w[ok], pixel_index.size)
+            e_irr = pixel_irradiance(lighting.sky.levels, rows[ok], e_n[ok], e_w[ok],
+                                     pixel_index.size)
             samples = (rows[ok], e_n[ok], e_v[ok], e_w[ok], tuple(lighting.sky.levels))
         if tabulated is not None:
             rows, node, frac, e_c, e_cos, e_nw = tabulated()

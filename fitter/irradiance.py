@@ -33,6 +33,7 @@ import functools
 
 import numpy as np
 
+from ._keep import derived
 from .envlight import bilinear, dir_to_uv, uv_to_dir
 
 #: The map is summed at its finest pyramid level at most this wide, its columns
@@ -93,6 +94,19 @@ def irradiance(grid: np.ndarray, normals) -> np.ndarray:
     return bilinear(grid, u, v)
 
 
+def _per_pixel(rows, values, n: int) -> np.ndarray:
+    """(n, 3): the env samples' ``values`` (R, 3) summed per pixel ``rows`` (R,)."""
+    return np.stack([np.bincount(rows, values[:, c], minlength=n) for c in range(3)], -1)
+
+
+def pixel_irradiance(levels, rows, normal, weight, n: int) -> np.ndarray:
+    """(n, 3) per active pixel: E at each env sample (``rows`` (R,) its pixel, unit
+    ``normal`` (R, 3)) times its weight (R,), summed per pixel; ``levels``: the sky's
+    pyramid, whose grid of E (``irradiance_grid``) is kept with its top level."""
+    grid = derived(levels[0], "irradiance", lambda: irradiance_grid(levels))
+    return _per_pixel(rows, weight[:, None] * irradiance(grid, normal), n)
+
+
 #: ``kernel_sums`` sums the map's finest level at most this wide, at its texel nodes
 #: (a smaller map resampled to ``KERNEL_ROWS`` x this: a constant sky's 2 x 4 texels
 #: as nodes had left Oren-Nayar's B term 7 % off).
@@ -146,10 +160,8 @@ def kernel_sums(levels, kernel, rows, normal, view, weight, n: int) -> np.ndarra
 
     dirs, radiance = _nodes(levels)
     pad = (-len(rows)) % KERNEL_CHUNK
-    args = [np.concatenate([a, np.repeat(a[-1:] if len(a) else np.ones((1,) + a.shape[1:]),
-                                         pad, axis=0)])
-            for a in (normal, view, weight)]
-    args[2][len(rows):] = 0.0  # (padding: weight 0)
+    # (zero padding: cos_i = 0 there, which the kernel's mask takes to 0, and weight 0)
+    args = [np.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1)) for a in (normal, view, weight)]
     e = np.asarray(_summer(kernel)(*map(jnp.asarray, args), jnp.asarray(dirs),
                                    jnp.asarray(radiance)))[:len(rows)]
-    return np.stack([np.bincount(rows, e[:, c], minlength=n) for c in range(3)], -1)
+    return _per_pixel(rows, e, n)

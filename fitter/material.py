@@ -129,6 +129,12 @@ class Material:
         """Names of the opaque (``brdf``) lobes: those lights and an environment light."""
         return [lb.name for lb in self.lobe_objects if lb.kind == "brdf"]
 
+    @property
+    def stencil_lobes(self) -> list[str]:
+        """Names of the opaque lobes an environment's sky lights through the sky
+        stencil (not ``Lobe.stencil_free``): without any, no sky table is made."""
+        return [lb.name for lb in self.lobe_objects if lb.kind == "brdf" and not lb.stencil_free]
+
     def options_of(self, lobe: str) -> dict[str, Any]:
         return lobe_params(dict(self.options), lobe)
 

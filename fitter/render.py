@@ -187,6 +187,17 @@ def _sun_unit(lobe, p, opts, sun):
     return _lobe_sum(lobe, p, opts, group_sums, sun.cosines, sun.weight, sun.color)
 
 
+def sky_parts(lobe, p, opts, geo: Geometry):
+    """A ``Lobe.stencil_free`` lobe's light from the sky per unit of its scale, (P, 3)
+    each: (its uniform part x each pixel's irradiance, its kernel's factor x the
+    pixel's kernel sum or None without a kernel); ``p``: the lobe's parameters."""
+    q = {k: v for k, v in p.items() if k != lobe.scale}
+    uniform = lobe.uniform(q, opts) * geo.env_irradiance
+    if lobe.kernel is None:
+        return uniform, None
+    return uniform, lobe.kernel_factor(q, opts) * geo.env_kernels[lobe.name]
+
+
 def _env_unit(lobe, p, opts, geo: Geometry):
     """The sky's light (P, 3) per unit of the lobe's scale: its uniform part
     (``Lobe.uniform``) times each pixel's irradiance and its kernel's factor times
@@ -204,12 +215,9 @@ def _env_unit(lobe, p, opts, geo: Geometry):
         mean = jnp.sum(g * wnode[..., None], -2) if rgb else jnp.sum(g * wnode, -1)  # a cell's
         return sky_sum(mean, node, frac, color)
 
-    if lobe.uniform is not None:
-        q = {k: v for k, v in p.items() if k != lobe.scale}
-        out = lobe.uniform(q, opts) * geo.env_irradiance
-        if lobe.kernel is not None:
-            out = out + lobe.kernel_factor(q, opts) * geo.env_kernels[lobe.name]
-        return out
+    if lobe.stencil_free:
+        uniform, kernel = sky_parts(lobe, p, opts, geo)
+        return uniform if kernel is None else uniform + kernel
     out = jnp.zeros((geo.background.shape[0], 3), geo.env_irradiance.dtype)
     per_sample = _lobe_sum(lobe, p, opts, stencil_sum, geo.env_cosines, geo.env_node_weight,
                            geo.env_node, geo.env_frac, geo.env_color)
@@ -299,9 +307,9 @@ class Renderer:
         self.scene, self.material, self.dtype = scene, material, dtype
         self.env_type = scene.environment.type
         key_scene, key_dir = _prepare_key(scene, os.path.abspath(base_dir) if base_dir else None)
-        stencil = any(lb.kind == "brdf" and not lb.stencil_free for lb in material.lobe_objects)
         geo, self.env, self.sphere = _prepare(key_scene, jnp.dtype(dtype), key_dir,
-                                              env_light=bool(material.opaque), stencil=stencil)
+                                              env_light=bool(material.opaque),
+                                              stencil=bool(material.stencil_lobes))
         geo = with_kernels(geo, material)
         if geo.env_kernels is not None:
             geo = geo._replace(env_kernels={k: to_device(v, dtype)

@@ -197,7 +197,7 @@ def prefetch(problem) -> None:
         jobs.append((scene, FINER_SUN, r.material, flat, False, False))
     if flat.size * sum(s.supersampling**2 for s, *_ in jobs) > PREFETCH_SAMPLES:
         return
-    stencil = _sky.stencil_lobes(r.material)
+    stencil = r.material.stencil_lobes
     if lit and flat.size and stencil:
         jobs.append((scene.replace(lights=()), _half_rings(),
                      _sky.lobes_alone(r.material, stencil), flat[::RING_STRIDE], True, False))
@@ -384,7 +384,7 @@ def sky_terms(data, params, material, env_type) -> tuple:
     if any(np.any(k) for _, k in summed):
         bounds.append(KERNEL_ACCURACY * sum(k for _, k in summed))
     sky, stencil = sum(u + k for u, k in summed) + zero, zero
-    if _sky.stencil_lobes(material):
+    if material.stencil_lobes:
         _joined(SKY_TERMS)  # its executable, if ``prefetch`` compiled it
         # to_device: jnp.asarray compiled a conversion kernel per shape on a first run
         params = {k: to_device(np.asarray(v), data.target.dtype) for k, v in params.items()}
@@ -397,7 +397,7 @@ def _sky_terms(params, geo, env, sphere, material, env_type) -> np.ndarray:
     """The sky term (P, 3) of ``material``'s lobes the stencil sums on ``geo``
     (``_sky.dark``), times the exposure if any; ``params`` as ``_renders.render``
     takes them."""
-    lobes = _sky.lobes_alone(material, _sky.stencil_lobes(material))
+    lobes = _sky.lobes_alone(material, material.stencil_lobes)
     sky = _renders.render(params, _sky.dark(geo), env, sphere, lobes, env_type)
     return sky * float(params[EXPOSURE_KEY]) if material.exposure else sky
 
@@ -436,7 +436,7 @@ def ring_error(problem, params, rows, sky) -> np.ndarray:
     scene, material, env_type = r.scene, r.material, r.env_type
     env64 = load_environment(scene.environment, problem.base_dir)
     lighting = (_lighting(scene.environment, problem.base_dir, _half_rings())
-                if envlight.lit_by_environment(scene, material) and _sky.stencil_lobes(material)
+                if envlight.lit_by_environment(scene, material) and material.stencil_lobes
                 else None)
     pick = np.arange(0, len(rows), RING_STRIDE)
     if lighting is None or not pick.size:

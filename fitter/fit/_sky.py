@@ -12,6 +12,7 @@ import numpy as np
 
 from .._math import to_device
 from ..material import EXPOSURE_KEY, Material, lobe_params
+from ..render import sky_parts
 
 
 def opaque_lobes(material) -> list:
@@ -19,24 +20,16 @@ def opaque_lobes(material) -> list:
     return [lb for lb in material.lobe_objects if lb.name in material.opaque]
 
 
-def stencil_lobes(material) -> list:
-    """Names of the opaque lobes the sky stencil sums (not ``Lobe.stencil_free``)."""
-    return [lb.name for lb in opaque_lobes(material) if not lb.stencil_free]
-
-
 def summed_parts(geo, params, material, lobe) -> tuple[np.ndarray, np.ndarray]:
-    """``lobe``'s uniform and kernel parts under the sky (P, 3) each: scale x uniform x
-    the pixel's irradiance, scale x the kernel's factor x its sum (``render._env_unit``),
-    times the exposure if any."""
+    """``lobe``'s uniform and kernel parts under the sky (P, 3) each
+    (``render.sky_parts``), times its scale and the exposure if any; the kernel's
+    zeros without one. ``params``: complete, in user units."""
     p = lobe_params(params, lobe.name)
-    q, opts = {k: v for k, v in p.items() if k != lobe.scale}, material.options_of(lobe.name)
     scale = np.asarray(p[lobe.scale], dtype=np.float64)
     scale = scale * float(params[EXPOSURE_KEY]) if material.exposure else scale
-    uniform = scale * float(lobe.uniform(q, opts)) * np.asarray(geo.env_irradiance, np.float64)
-    if lobe.kernel is None:
-        return uniform, np.zeros_like(uniform)
-    return uniform, scale * float(lobe.kernel_factor(q, opts)) * np.asarray(
-        geo.env_kernels[lobe.name], np.float64)
+    uniform, kernel = (None if a is None else scale * np.asarray(a, dtype=np.float64)
+                       for a in sky_parts(lobe, p, material.options_of(lobe.name), geo))
+    return uniform, np.zeros_like(uniform) if kernel is None else kernel
 
 
 def lobes_alone(material, names) -> Material:
