@@ -1,14 +1,16 @@
 """Process settings a fit holds changed while it runs and gives back after:
-NumPy's huge-page advice off (``fitter.hugepages``) and one BLAS thread
-(``fitter.blasthreads``), both through ``fitter._switch.SharedSwitch``."""
+NumPy's huge-page advice off (``fitter.hugepages``), one BLAS thread
+(``fitter.blasthreads``) and fewer garbage collections (``fitter.gcthreshold``),
+all through ``fitter._switch.SharedSwitch``."""
 
+import gc
 import threading
 
 import numpy as np
 import pytest
 from threadpoolctl import ThreadpoolController
 
-from fitter import blasthreads, hugepages, serialize
+from fitter import blasthreads, gcthreshold, hugepages, serialize
 from fitter.cases import CASES
 from fitter.fit import _drivers
 
@@ -28,20 +30,32 @@ def blas_threads() -> int:
         user_api="blas").info())
 
 
+def young_threshold() -> int:
+    """The garbage collector's young-generation threshold now."""
+    return gc.get_threshold()[0]
+
+
+#: CPython's default young threshold, which the fixture sets.
+DEFAULT_THRESHOLD = 700
 #: (decorator, the setting now, its value inside a fit, before and after).
 SWITCHES = {"huge-page advice": (hugepages.advice_off, advice, False, True),
-            "BLAS threads": (blasthreads.one_blas_thread, blas_threads, 1, 2)}
+            "BLAS threads": (blasthreads.one_blas_thread, blas_threads, 1, 2),
+            "collector threshold": (gcthreshold.fewer_collections, young_threshold,
+                                    gcthreshold.THRESHOLD, DEFAULT_THRESHOLD)}
 
 
 @pytest.fixture(autouse=True)
 def known_settings(monkeypatch):
-    """The advice on and every BLAS library at two threads: values that differ
-    from a fit's."""
+    """The advice on, every BLAS library at two threads and the collector at its
+    default: values that differ from a fit's."""
     monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
     before = _ADVICE(True)
     limiter = ThreadpoolController().limit(limits=2, user_api="blas")
     assert blas_threads() == 2
+    thresholds = gc.get_threshold()
+    gc.set_threshold(DEFAULT_THRESHOLD, *thresholds[1:])
     yield
+    gc.set_threshold(*thresholds)
     limiter.restore_original_limits()
     _ADVICE(before)
 
@@ -92,11 +106,11 @@ class _Stop(Exception):
 
 
 @pytest.mark.parametrize("entry", ["fit", "fit_batch"])
-def test_fit_entry_points_run_with_both_settings(monkeypatch, entry):
+def test_fit_entry_points_run_with_every_setting(monkeypatch, entry):
     seen = []
 
     def probe(*args, **kwargs):
-        seen.append((advice(), blas_threads()))
+        seen.append((advice(), blas_threads(), young_threshold()))
         raise _Stop
 
     monkeypatch.setattr(_drivers, "check_scene", probe)
@@ -104,7 +118,18 @@ def test_fit_entry_points_run_with_both_settings(monkeypatch, entry):
     scene = serialize.scene_from_dict(CASES["plastic"]["scene"], "plastic")
     with pytest.raises(_Stop):
         getattr(_drivers, entry)(target, scene, "lambert")
-    assert seen == [(False, 1)] and (advice(), blas_threads()) == (True, 2)
+    assert seen == [(False, 1, gcthreshold.THRESHOLD)]
+    assert (advice(), blas_threads(), young_threshold()) == (True, 2, DEFAULT_THRESHOLD)
+
+
+def test_a_disabled_collector_is_left_alone():
+    gc.disable()
+    try:
+        seen = []
+        gcthreshold.fewer_collections(lambda: seen.append(young_threshold()))()
+        assert seen == [DEFAULT_THRESHOLD] and not gc.isenabled()
+    finally:
+        gc.enable()
 
 
 def test_a_scene_is_prepared_with_both_settings(monkeypatch):

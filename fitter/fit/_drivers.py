@@ -21,6 +21,7 @@ import numpy as np
 
 from .. import envlight
 from ..blasthreads import one_blas_thread
+from ..gcthreshold import fewer_collections
 from ..hugepages import advice_off
 from ..limits import check_scene
 from ..material import Material
@@ -58,6 +59,7 @@ AUTO_STARTS = 4
 
 @advice_off
 @one_blas_thread
+@fewer_collections
 @settled
 def fit(target, scene: Scene, material, *, init: Mapping[str, Any] | None = None,
         fixed: Mapping[str, Any] | None = None, bounds: Mapping[str, tuple] | None = None,
@@ -251,6 +253,7 @@ def solve_starts(problem: Problem, z0s, data, say=_quiet, what: str = ""):
 
 @advice_off
 @one_blas_thread
+@fewer_collections
 def fit_batch(targets, scene: Scene, material, *, batch: str = "map",
               identifiability: bool = True, **kwargs) -> list[FitResult]:
     """Fit many targets of one scene and material in one compiled solve.
