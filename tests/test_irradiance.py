@@ -206,6 +206,35 @@ def test_a_lobe_the_stencil_does_not_sum_gets_no_sky_table(tmp_path, probe_sky):
                           fitter.Material.make("lambert+torrance_sparrow"))), rtol=1e-12)
 
 
+def test_the_stated_errors_sky_parts_are_multiplied_on_the_host(tmp_path, probe_sky, caplog):
+    """``_sky.summed_parts`` (the stated errors' uniform and kernel parts) takes the
+    geometry's device sums to the host before multiplying: no eager kernel is
+    compiled (one was, on a first fit's main thread, per product), and the parts add
+    up to the renderer's own sky term of the lobe, a sky-lit render without lights."""
+    import jax
+
+    from fitter.fit import _sky
+    from fitter.imageio import write_image
+    from fitter.material import Material
+    from fitter.render import cached_renderer, render_active
+
+    write_image(str(tmp_path / "sky.exr"), np.asarray(probe_sky.levels[0], np.float32))
+    scene = Scene(width=16, height=16, supersampling=2, lights=(),
+                  environment=Environment(type="envmap", file=str(tmp_path / "sky.exr")))
+    mat = Material.make("oren_nayar")
+    r = cached_renderer(scene, mat, jnp.dtype(jnp.float64), None)
+    params = mat.full_params({"oren_nayar.rho_d": [0.5, 0.4, 0.3], "oren_nayar.sigma": 0.4})
+    host = {k: np.asarray(v, np.float64) for k, v in params.items()}
+    with jax.log_compiles(True), caplog.at_level("DEBUG"):
+        uniform, kernel = _sky.summed_parts(r.geometry, host, mat, mat.lobe_objects[0])
+    assert not [rec for rec in caplog.records if "Compiling" in rec.getMessage()]
+    assert isinstance(uniform, np.ndarray) and isinstance(kernel, np.ndarray)
+    assert np.all(kernel > 0)
+    own = render_active(r.params(params), _sky.dark(r.geometry), r.env, r.sphere,
+                        material=mat, env_type=r.env_type)
+    np.testing.assert_allclose(uniform + kernel, np.asarray(own), rtol=1e-12)
+
+
 def test_an_oren_nayar_fit_under_a_sky_needs_no_stencil(tmp_path, probe_sky, finer_builds):
     """Its stated errors take the sums' accuracy (no half-ring stencil geometry is
     built for a ring error it has not), and the model's own render (noise 1e-3) is

@@ -27,6 +27,9 @@ def summed_parts(geo, params, material, lobe) -> tuple[np.ndarray, np.ndarray]:
     p = lobe_params(params, lobe.name)
     scale = np.asarray(p[lobe.scale], dtype=np.float64)
     scale = scale * float(params[EXPOSURE_KEY]) if material.exposure else scale
+    # On the host: host parameters times device sums compiled an eager kernel per product.
+    kernels = geo.env_kernels and {k: np.asarray(v) for k, v in geo.env_kernels.items()}
+    geo = geo._replace(env_irradiance=np.asarray(geo.env_irradiance), env_kernels=kernels)
     uniform, kernel = (None if a is None else scale * np.asarray(a, dtype=np.float64)
                        for a in sky_parts(lobe, p, material.options_of(lobe.name), geo))
     return uniform, np.zeros_like(uniform) if kernel is None else kernel
