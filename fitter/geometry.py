@@ -337,7 +337,7 @@ def _beside(fn):
 
 
 def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
-                   pixels=None, stencil: bool = True) -> Geometry:
+                   pixels=None, stencil: bool = True, cotangents: bool = True) -> Geometry:
     """Trace the camera rays against the sphere and tabulate the lights.
 
     ``lighting``: the environment as light (``fitter.envlight.EnvLights``) or
@@ -345,7 +345,9 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
     ``sky`` of None the sun cells alone (no sky tabulation). ``pixels``: flat
     indices (row * W + col) of the only pixels to make active (default all
     that the sphere covers); ``stencil``: tabulate the sky stencil (False where
-    every lobe the sky lights is ``Lobe.stencil_free``: its sums alone).
+    every lobe the sky lights is ``Lobe.stencil_free``: its sums alone);
+    ``cotangents``: the sun cells keep their pairs' cotangents
+    (``suncells.sun_samples``; False for a geometry rendered once).
     """
     sph = scene.sphere
     sel = None if pixels is None else np.unique(np.asarray(pixels, dtype=np.int64))
@@ -403,7 +405,8 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
         # The sky's tabulation compiled beside the sun's cells (XLA's compile releases the
         # interpreter): env_plastic's first fit ~0.05-0.1 s sooner (benchmarks/README.md).
         tabulated = _beside(sky) if lighting.sky is not None and stencil else None
-        sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w)
+        sun = sun_samples(lighting, hit, normal, -d_a, weight, rows, e_n, e_v, e_w,
+                          cotangents)
         if lighting.sky is not None:
             e_irr = pixel_irradiance(lighting.sky.levels, rows[ok], e_n[ok], e_w[ok],
                                      pixel_index.size)

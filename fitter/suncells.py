@@ -35,8 +35,8 @@ class SunCells(NamedTuple):
     Attributes:
         index: (sum Q_i,) int32, each sample's active-pixel row.
         cosines: ``Cosines`` (sum L_i Q_i,) of each (light, sample) pair, each
-            group's (L_i, Q_i) flattened; no cotangents (a lobe takes them from
-            the cosines: these arrays are most of an env-lit fit's memory).
+            group's (L_i, Q_i) flattened; with their cotangents or without (a lobe
+            then takes them from the cosines; ``sun_samples``).
         weight: per group, (L_i, Q_i) sample weight x cos_i where lit, else 0.
         color: per group, (L_i, 3) each light's irradiance.
     """
@@ -102,21 +102,21 @@ CLUSTER_WIDTH = 0.06
 SUN_CHUNK = 1 << 16
 
 
-#: The sun cells' ``Cosines`` fields: no cotangents (the lobe takes them from the
-#: cosines), as their (cells x samples) arrays are most of an env-lit fit's memory
-#: (tabulated, env_plastic's peak grew 8-12 %).
+#: The sun cells' ``Cosines`` fields without their cotangents (``sun_samples``).
 _SUN_FIELDS = 6
 
 
-def _sun_cells(groups) -> SunCells | tuple:
+def _sun_cells(groups, cotangents: bool = False) -> SunCells | tuple:
     """``SunCells`` of ``groups`` (n, v (Q, 3) normals and view directions, w (Q,)
     sample weights, rows (Q,), dirs (L, 3) light directions, irr (L, 3)), those
-    with samples, written straight into the flat arrays (no copy of them)."""
+    with samples, written straight into the flat arrays (no copy of them); with
+    the pairs' cotangents where ``cotangents``."""
     groups = [g for g in groups if np.shape(g[0])[0]]
     if not groups:
         return ()
     sizes = [np.shape(g[4])[0] * np.shape(g[0])[0] for g in groups]
-    flat = Cosines(*(np.empty(sum(sizes)) for _ in range(_SUN_FIELDS)))
+    fields = len(Cosines._fields) if cotangents else _SUN_FIELDS
+    flat = Cosines(*(np.empty(sum(sizes)) for _ in range(fields)))
     weights = []
     for (n, v, w, _, dirs, _), e0, size in zip(groups, np.cumsum([0] + sizes), sizes):
         n, v, w, dirs = (np.asarray(a, np.float64) for a in (n, v, w, dirs))
@@ -129,7 +129,7 @@ def _sun_cells(groups) -> SunCells | tuple:
             # np.cross took 6 s of a first env fit's 2k-sample discretisation check.
             part = cosines(n[None, s:s + step], dirs[:, None], v[None, s:s + step])
             lit = (part.cos_i > 0) & (part.cos_o > 0)
-            for out, a, b in zip(cos[:_SUN_FIELDS], part, UNLIT):
+            for out, a, b in zip(cos[:fields], part, UNLIT):
                 out[:, s:s + step] = np.where(lit, a, b)
             weight[:, s:s + step] = np.where(lit, w[s:s + step] * cos.cos_i[:, s:s + step], 0.0)
         weights.append(weight)
@@ -169,10 +169,17 @@ def clusters(sun_dir, sun_irradiance, width: float = CLUSTER_WIDTH):
     return cen / np.linalg.norm(cen, axis=-1, keepdims=True), irr
 
 
-def sun_samples(lighting, hit, normal, view, weight, e_rows, e_n, e_v, e_w):
+def sun_samples(lighting, hit, normal, view, weight, e_rows, e_n, e_v, e_w,
+                cotangents: bool = False):
     """The sun's cells on their samples (``SunCells``, ``Geometry.sun``; () without a
     sun): a group of every sample x every cell near the highlight and the sun's
-    horizon (of its centroid), one of its ``clusters`` on the env samples elsewhere."""
+    horizon (of its centroid), one of its ``clusters`` on the env samples elsewhere.
+
+    ``cotangents``: the pairs' cot_i and cot_o kept (16 bytes a pair more) for a
+    geometry a solver renders at every step: without them a lobe's derivatives
+    took them from the cosines per column (Smith's G1 reads both; env_plastic's sun
+    Jacobian per step 45 -> 25 ms); a geometry rendered once (the stated errors'
+    finer ones, where the pairs are most of their memory) goes without."""
     if not lighting.sun_dir.shape[0]:
         return ()
     far_dir, far_irr = clusters(lighting.sun_dir, lighting.sun_irradiance)
@@ -186,4 +193,4 @@ def sun_samples(lighting, hit, normal, view, weight, e_rows, e_n, e_v, e_w):
     far = ~near_pix[e_rows]
     return _sun_cells([
         (normal[p, k], view[p, k], weight[k], p, lighting.sun_dir, lighting.sun_irradiance),
-        (e_n[far], e_v[far], e_w[far], e_rows[far], far_dir, far_irr)])
+        (e_n[far], e_v[far], e_w[far], e_rows[far], far_dir, far_irr)], cotangents)

@@ -306,13 +306,50 @@ def test_geometry_of_a_pixel_subset_equals_those_pixels_of_the_whole(sun_probe):
     assert none.env_color is whole.env_color and np.all(idx[idx >= 0] == 0)  # past row 0
 
 
-def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
+def test_the_fitted_geometry_keeps_the_sun_pairs_cotangents(sun_probe):
+    """The renderer's geometry (rendered at every solver step) keeps its sun pairs'
+    cotangents, a geometry built without them (the stated errors' finer ones) does
+    not; its render and its derivative in m and eta are the same either way (the lobe
+    then takes them from the cosines)."""
+    from fitter.geometry import build_geometry
+    from fitter.render import render_active
+
+    scene = SMALL.replace(lights=(), environment=Environment(type="envmap", file=sun_probe))
+    mat = Material.make("lambert+torrance_sparrow", {"torrance_sparrow.geometry": "smith"})
+    r = cached_renderer(scene, mat, jnp.dtype(jnp.float64), None)
+    sun = r.geometry.sun
+    assert sun and sun.cosines.cot_i is not None and sun.cosines.cot_o is not None
+    bare = r.geometry._replace(sun=sun._replace(cosines=sun.cosines._replace(
+        cot_i=None, cot_o=None)))
+    p = r.params({"lambert.rho_d": 0.3, "torrance_sparrow.m": 0.15,
+                  "torrance_sparrow.eta": 1.4})
+
+    def f(m_eta, geo):
+        q = {**p, "torrance_sparrow.m": m_eta[0], "torrance_sparrow.eta": m_eta[1]}
+        return render_active(q, geo, r.env, r.sphere, material=mat, env_type=r.env_type)
+
+    x = jnp.array([0.15, 1.4])
+    np.testing.assert_allclose(f(x, r.geometry), f(x, bare), rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(jax.jacfwd(f)(x, r.geometry), jax.jacfwd(f)(x, bare),
+                               rtol=1e-12, atol=1e-14)
+    env = jax.tree_util.tree_map(np.asarray, r.env)
+    lights = envlight.env_lights("envmap", env.image, env.constant)
+    finer = build_geometry(scene, "envmap", env, lights, cotangents=False)
+    assert finer.sun and finer.sun.cosines.cot_i is None
+
+
+@pytest.mark.parametrize("cotangents", [False, True])
+def test_sun_group_cosines_equal_the_generic_formula(monkeypatch, cotangents):
     # The sun groups' cosines are computed per component in pieces (suncells._sun_cells),
     # stored flat group after group (``SunCells``); reference: bsdf.base.cosines of JAX
     # arrays (its other code path: np.cross-like jnp.cross and sums over the last axis)
     # on the broadcast (L, Q, 3) directions, across piece boundaries and at h = 0
     # (light opposite the view) and h along n; a second group of one light after it.
+    # With ``cotangents`` the pairs' cot_i, cot_o too: cos / sin from the reference's
+    # cosines (sin = sqrt(1 - cos^2)), the stand-in cot of a direction along the normal
+    # where unlit.
     from fitter import suncells
+    from fitter.bsdf.base import COT_NORMAL
     from fitter.bsdf.base import Cosines, cosines
 
     rng = np.random.default_rng(3)
@@ -325,14 +362,15 @@ def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
     monkeypatch.setattr(suncells, "SUN_CHUNK", 50)  # 7 pieces of 7 lights x 7 samples
     cells = suncells._sun_cells([(n, v, w, np.arange(301), dirs, np.ones((7, 3))),
                                  (n[:40], v[:40], w[:40], np.arange(40) + 5, dirs[2:3],
-                                  np.full((1, 3), 2.0))])
+                                  np.full((1, 3), 2.0))], cotangents)
     np.testing.assert_array_equal(cells.index, np.concatenate([np.arange(301),
                                                                np.arange(40) + 5]))
     d = jnp.broadcast_to(jnp.asarray(dirs)[:, None], (7, 301, 3))
     ref = Cosines(*(np.asarray(a) for a in cosines(jnp.broadcast_to(jnp.asarray(n), d.shape), d,
                                                    jnp.broadcast_to(jnp.asarray(v), d.shape))))
-    # No cotangents for the sun's cells (memory): the lobe takes them from the cosines.
-    assert cells.cosines.cot_i is None and cells.cosines.cot_o is None
+    # Without cotangents (the memory of a geometry rendered once) the lobe takes them
+    # from the cosines.
+    assert (cells.cosines.cot_i is None) is (cells.cosines.cot_o is None) is (not cotangents)
     for (_, cos, weight, _), pick in zip(cells.groups(), (np.s_[:, :], np.s_[2:3, :40]),
                                              strict=True):
         want_cos = ref.map(lambda a: a[pick])  # noqa: B023
@@ -341,6 +379,11 @@ def test_sun_group_cosines_equal_the_generic_formula(monkeypatch):
         for got, want, stand_in in zip(cos[:6], want_cos[:6], (1.0, 1.0, 1.0, 1.0, 1.0, 0.0),
                                        strict=True):
             np.testing.assert_allclose(got, np.where(lit, want, stand_in), rtol=1e-13, atol=1e-15)
+        if cotangents:
+            for got, c in ((cos.cot_i, want_cos.cos_i), (cos.cot_o, want_cos.cos_o)):
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    want = c / np.sqrt(1.0 - c * c)
+                np.testing.assert_allclose(got, np.where(lit, want, COT_NORMAL), rtol=1e-11)
         np.testing.assert_allclose(weight, np.where(lit, w[pick[1]] * want_cos.cos_i, 0.0),
                                    rtol=1e-13, atol=1e-15)
     np.testing.assert_array_equal(cells.color[1], [[2.0, 2.0, 2.0]])

@@ -228,8 +228,8 @@ def prefetch(problem) -> None:
                     continue  # no sun: ``finer_values`` renders no finer sun
                 if lighting is None and sky:
                     break
-                box[0] = _prepared(build_geometry(s, r.env_type, env64, lighting, pixels=px), px,
-                                   one)
+                box[0] = _prepared(build_geometry(s, r.env_type, env64, lighting, pixels=px,
+                                                  cotangents=False), px, one)
                 geo = _sky.dark(box[0][0]) if sky else box[0][0]
                 args, key = _renders.args_and_key(params, geo, env64, _sphere(scene), material,
                                                   r.env_type, one)
@@ -301,7 +301,8 @@ def _geometry(scene, env64, lighting, flat, env_type, key):
         return _GEOMETRIES[key]
     made = _joined(key)[0]
     out = (made if made is not None else _prepared(
-        build_geometry(scene, env_type, env64, lighting, pixels=flat), flat, key[-1]))
+        build_geometry(scene, env_type, env64, lighting, pixels=flat, cotangents=False), flat,
+        key[-1]))
     hold(_GEOMETRIES, key, out, _KEEP_GEOMETRIES, _KEEP_BYTES, size=lambda g: nbytes(g[0]),
          protect=0)  # (even the newest, if it alone is over the bytes)
     return out
