@@ -91,9 +91,9 @@ class Geometry(NamedTuple):
             sky-stencil cell int L cos_i dw times the sample's weight in its
             pixel / cos_o (0 for unlit cells and padding).
         env_cosines: ``Cosines`` (T, N, M) of M points per cell at the theta_o
-            nodes (cos_o, one per node, (T, 1, 1)) and env_node_weight (T, N, M)
-            their weights (``envlight.node_geometry``): the lobe is evaluated on
-            these only.
+            nodes (cos_o, one per node, repeated over its points) and
+            env_node_weight (T, N, M) their weights (``envlight.node_geometry``):
+            the lobe is evaluated on these only.
         env_irradiance: (P, 3) the sky's irradiance E (int L cos_i dw) of each
             pixel, summed over the map (``fitter.irradiance``), not the stencil:
             a lobe's uniform part u (``Lobe.uniform``: Lambert's 1/pi) reflects
@@ -400,7 +400,10 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
             order, node, frac, e_c = sky_table(lighting.sky, e_n[ok], e_v[ok], e_w[ok],
                                                nodes=det.nodes, rings=det.rings)
             r = np.where(order < 0, -1, r[np.maximum(order, 0)] if r.size else -1)
-            return (r, node, frac, e_c) + node_geometry(det.nodes, tuple(det.sub), det.rings)
+            cos, nw = node_geometry(det.nodes, tuple(det.sub), det.rings)
+            # Every field at the points' (T, N, M), cos_o's too (one per node there): the
+            # renderer evaluates the lobe on them flat (``render._env_unit``).
+            return r, node, frac, e_c, cos.map(lambda a: np.broadcast_to(a, nw.shape).copy()), nw
 
         # The sky's tabulation compiled beside the sun's cells (XLA's compile releases the
         # interpreter): env_plastic's first fit ~0.05-0.1 s sooner (benchmarks/README.md).
