@@ -6,7 +6,7 @@ generation every 700 net allocations (``gc.get_threshold()[0]``), each run
 walking the survivors. On the 2-core machine the targets are measured on,
 env_plastic's first fit spent ~3 % of its CPU in the collector (``perf``:
 ``gc_collect_main``, ``visit_decref``, ``visit_reachable``); with the young
-generation's threshold at ``THRESHOLD`` the fit took 8.40 -> 8.15 CPU-s and
+generation's threshold at ``THRESHOLD`` the fit took 8.40 -> 8.13 CPU-s and
 4.66 -> 4.46 s (three runs each, medians; collector off: 4.41 s). The fit's
 garbage is still collected, in fewer, larger passes, and the threshold is
 restored when the fit returns.

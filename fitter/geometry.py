@@ -403,7 +403,8 @@ def build_geometry(scene: Scene, env_type: str, env: EnvData, lighting=None,
             cos, nw = node_geometry(det.nodes, tuple(det.sub), det.rings)
             # Every field at the points' (T, N, M), cos_o's too (one per node there): the
             # renderer evaluates the lobe on them flat (``render._env_unit``).
-            return r, node, frac, e_c, cos.map(lambda a: np.broadcast_to(a, nw.shape).copy()), nw
+            return r, node, frac, e_c, cos.map(
+                lambda a: a if a.shape == nw.shape else np.broadcast_to(a, nw.shape).copy()), nw
 
         # The sky's tabulation compiled beside the sun's cells (XLA's compile releases the
         # interpreter): env_plastic's first fit ~0.05-0.1 s sooner (benchmarks/README.md).

@@ -218,7 +218,7 @@ def _env_unit(lobe, p, opts, geo: Geometry):
     against its cells (``envlight.sky_sum``). Its value and derivative columns
     are evaluated on the (T, N, M) points flat: XLA's CPU loop over them as a
     (columns, T, N, M) array ran ~4x slower (Torrance-Sparrow, env_plastic's
-    Jacobian 91 -> 76 ms a step); its value alone keeps the (T, N, M) form (flat,
+    Jacobian 82 -> 72 ms a step); its value alone keeps the (T, N, M) form (flat,
     the cost profile's evaluations took 0.23 -> 0.40 s).
     """
     from .envlight import sky_sum
