@@ -155,13 +155,17 @@ class Geometry(NamedTuple):
         pixels' geometries are cached)."""
         return derived(self.hit, name, make)
 
-    def subset(self, rows: np.ndarray, own_samples: bool = False) -> "Geometry":
+    def subset(self, rows: np.ndarray, own_samples: bool = False,
+               shared_sun: bool = False) -> "Geometry":
         """The geometry of the active pixels ``rows`` only (NumPy arrays; the sky
         irradiance of a sky table stays on the device when it is there).
 
         The env samples' blocks are shared, not copied, unless ``own_samples``:
         then the samples of ``rows`` alone are blocked anew with their rows of
-        the sky table (``_own_samples``), so a render sums only theirs."""
+        the sky table (``_own_samples``), so a render sums only theirs. The sun
+        cells' pairs are those of ``rows``, or with ``shared_sun`` all of them,
+        shared as they are (a dropped pixel's point past the last row), for a
+        subset of most pixels: no copy of the pairs, most of an env geometry."""
         per_light = lambda a: np.asarray(a)[:, rows]  # noqa: E731
         pick = lambda a: np.asarray(a)[rows]  # noqa: E731
         # One entry past the last row: a subset's samples of dropped pixels point there.
@@ -172,9 +176,15 @@ class Geometry(NamedTuple):
         idx = np.asarray(self.env_index)
         env_rows = np.where(idx >= 0, inv[np.maximum(idx, 0)], -1)
         env_rows = np.where((idx >= 0) & (env_rows < 0), len(rows), env_rows).astype(np.int32)
-        sun = SunCells.of((inv[i][inv[i] >= 0], cs.map(lambda a: a[:, inv[i] >= 0]),  # noqa: B023
-                           wt[:, inv[i] >= 0], col)
-                          for i, cs, wt, col in self.sun.groups()) if self.sun else ()
+        if shared_sun and self.sun:
+            idx = inv[np.asarray(self.sun.index)]
+            sun = self.sun._replace(index=np.where(idx >= 0, idx, len(rows)).astype(np.int32))
+        elif self.sun:
+            sun = SunCells.of(
+                (inv[i][inv[i] >= 0], cs.map(lambda a: a[:, inv[i] >= 0]),  # noqa: B023
+                 wt[:, inv[i] >= 0], col) for i, cs, wt, col in self.sun.groups())
+        else:
+            sun = ()
         env = (_own_samples(self, env_rows, len(rows)) if own_samples and self.has_sky
                else {"env_index": env_rows})
         return self._replace(

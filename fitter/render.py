@@ -282,8 +282,9 @@ def render_active(params, geo: Geometry, env: EnvData, sphere, *, material, env_
             if geo.sky_lit:
                 value = value + p[lobe.scale] * _env_unit(lobe, p, opts, geo)
             if geo.sun:
+                # (a sample of a pixel not fitted points past the end)
                 value = value + p[lobe.scale] * jnp.zeros_like(value).at[geo.sun.index].add(
-                    _sun_unit(lobe, p, opts, geo.sun))
+                    _sun_unit(lobe, p, opts, geo.sun), mode="drop")
         else:
             value = value + _specular(lobe, p, opts, geo, env, sphere, env_type)
     if material.exposure:  # static: a material without it traces exactly as before

@@ -298,6 +298,14 @@ def test_geometry_of_a_pixel_subset_equals_those_pixels_of_the_whole(sun_probe):
     kept = np.asarray(own.env_index)
     assert np.all(kept[kept >= 0] < len(rows))
     np.testing.assert_array_equal(values(own), values(first))
+    # Sharing the sun's pairs (the fitted pixels' subset of most pixels): the whole's
+    # arrays, not copies; a dropped pixel's pairs point past the last row, where the
+    # render drops them, so the values are those of the subset of the pairs.
+    assert whole.sun
+    shared = whole.subset(rows, shared_sun=True)
+    assert shared.sun.cosines is whole.sun.cosines and shared.sun.weight is whole.sun.weight
+    assert np.any(np.asarray(shared.sun.index) == len(rows))
+    np.testing.assert_allclose(values(shared), values(first), rtol=1e-12, atol=1e-15)
     own_again = own.subset(np.arange(0, len(rows), 3), own_samples=True)
     np.testing.assert_array_equal(values(own_again), values(again))
     # No pixel asked for, so no sample of theirs: the shared table, every sample dropped.

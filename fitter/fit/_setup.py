@@ -65,6 +65,13 @@ def select_pixels(renderer: Renderer, target, mask, exclude, saturation):
     return rows, int(chosen.sum() - rows.size), flat
 
 
+#: The fitted pixels' geometry shares the renderer's sun pairs (``Geometry.subset``'s
+#: ``shared_sun``) when at least this share of its pixels is fitted: env_plastic
+#: (96 % of its pixels) then renders 1.3 % of its pairs for nothing at every step, and
+#: its first fit's set-up skips copying them (0.17 -> 0.03 s).
+SHARED_SUN = 0.9
+
+
 @recent(max_items=4, max_bytes=KEEP_BYTES)
 def _fitted_geometry(renderer: Renderer, rows: bytes):
     """The renderer's geometry of the fitted ``rows`` (int64 bytes), on the device.
@@ -74,8 +81,9 @@ def _fitted_geometry(renderer: Renderer, rows: bytes):
     of one scene (a series of images, a batch) select the same pixels.
     """
     idx = np.frombuffer(rows, dtype=np.int64)
-    return jax.tree_util.tree_map(to_device, renderer.geometry.subset(idx)._replace(
-        pixel_index=None, background_image=None))
+    shared = idx.size >= SHARED_SUN * renderer.n_active
+    return jax.tree_util.tree_map(to_device, renderer.geometry.subset(
+        idx, shared_sun=shared)._replace(pixel_index=None, background_image=None))
 
 
 def _free_blocks(material: Material, fixed_keys, bounds: dict) -> tuple[Block, ...]:
