@@ -177,8 +177,9 @@ class Geometry(NamedTuple):
         env_rows = np.where(idx >= 0, inv[np.maximum(idx, 0)], -1)
         env_rows = np.where((idx >= 0) & (env_rows < 0), len(rows), env_rows).astype(np.int32)
         if shared_sun and self.sun:
-            idx = inv[np.asarray(self.sun.index)]
-            sun = self.sun._replace(index=np.where(idx >= 0, idx, len(rows)).astype(np.int32))
+            sun_rows = inv[np.asarray(self.sun.index)]
+            sun = self.sun._replace(
+                index=np.where(sun_rows >= 0, sun_rows, len(rows)).astype(np.int32))
         elif self.sun:
             sun = SunCells.of(
                 (inv[i][inv[i] >= 0], cs.map(lambda a: a[:, inv[i] >= 0]),  # noqa: B023

@@ -306,6 +306,9 @@ def test_geometry_of_a_pixel_subset_equals_those_pixels_of_the_whole(sun_probe):
     assert shared.sun.cosines is whole.sun.cosines and shared.sun.weight is whole.sun.weight
     assert np.any(np.asarray(shared.sun.index) == len(rows))
     np.testing.assert_allclose(values(shared), values(first), rtol=1e-12, atol=1e-15)
+    # and a subset of it (the cost profile's) drops those pairs as it copies its own
+    np.testing.assert_allclose(values(shared.subset(np.arange(0, len(rows), 3))),
+                               values(whole)[rows[::3]], rtol=1e-12, atol=1e-15)
     own_again = own.subset(np.arange(0, len(rows), 3), own_samples=True)
     np.testing.assert_array_equal(values(own_again), values(again))
     # No pixel asked for, so no sample of theirs: the shared table, every sample dropped.
