@@ -236,8 +236,9 @@ def _node_geometry(nodes: int, sub: tuple, rings: int = 1):
     w = np.where(tot > 0, w / np.where(tot > 0, tot, 1.0), 0.0) * np.cos(th)[:, None, None]
     cos = cosines(np.broadcast_to(n, cen.shape), cen, np.broadcast_to(wo, cen.shape))
     cos = _reshaped(cos, (nodes, n_cells, sa * sp))
-    # cos_o = n . wo is one value per node: kept (T, 1, 1), so that a lobe's terms in
-    # cos_o alone (Smith's G1(cos_o)) are evaluated per node, not per point.
+    # cos_o = n . wo is one value per node: kept (T, 1, 1) here (and in the table kept
+    # on disk); ``geometry.build_geometry`` repeats it over the points for the renderer,
+    # which evaluates the lobe's derivative columns on them flat (``render._env_unit``).
     return cos._replace(cos_o=np.ascontiguousarray(cos.cos_o[:, :1, :1]),
                         cot_o=np.ascontiguousarray(cos.cot_o[:, :1, :1])), w
 

@@ -277,9 +277,10 @@ UNIFORM_LOBES = [n for n, lobe in LOBES.items() if lobe.uniform is not None]
 @pytest.mark.parametrize("name", UNIFORM_LOBES)
 def test_a_uniform_part_and_its_kernel_add_up_to_the_shape(name):
     """shape = uniform + kernel_factor x kernel (``Lobe.uniform``: the sky lights the
-    parts through sums over the map), and the kernel's part vanishes where the
-    lecture says the lobe is uniform: Lambert has none, Oren-Nayar's B is 0 at
-    sigma = 0."""
+    parts through sums over the map), the kernel reads cos_i, cos_o and cos_io only
+    (``irradiance.kernel_sums`` forms no other field), and the kernel's part vanishes
+    where the lecture says the lobe is uniform: Lambert has none, Oren-Nayar's B is 0
+    at sigma = 0."""
     lobe = LOBES[name]
     assert UNIFORM_LOBES == ["lambert", "oren_nayar"]
     strategy = st.fixed_dictionaries({p.name: param_strategy(p) for p in lobe.params})
@@ -295,6 +296,8 @@ def test_a_uniform_part_and_its_kernel_add_up_to_the_shape(name):
                                    rtol=1e-14, atol=1e-16)
         if lobe.kernel is not None:
             assert np.all(np.isfinite(lobe.kernel(c)))
+            three = type(c)(c.cos_i, c.cos_o, c.cos_io, *(None,) * (len(c) - 3))
+            np.testing.assert_array_equal(lobe.kernel(three), lobe.kernel(c))
             assert lobe.kernel_factor({**p, "sigma": jnp.asarray(0.0)}, {}) == 0.0
 
     check()

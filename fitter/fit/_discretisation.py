@@ -369,12 +369,11 @@ def finer_values(problem, params, rows=None, coarse=None) -> tuple[np.ndarray, n
 def sky_terms(data, params, material, env_type) -> tuple:
     """(the fitted model's sky term (P, 3) of its opaque lobes, its part the sky
     stencil sums (P, 3), the stated bounds of its error (k, P, 3), independent):
-    ``IRRADIANCE_ACCURACY`` x the lobes' uniform
-    parts (``Lobe.uniform``), ``KERNEL_ACCURACY`` x their kernel parts
-    (``Lobe.kernel``; both summed over the map) and ``SKY_STENCIL_ACCURACY`` x the
-    other lobes' together (the stencil's errors of two lobes share its cells). Zeros
-    and (0, P, 3) when the environment lights none. The model minus the sky term is
-    the model without it."""
+    ``IRRADIANCE_ACCURACY`` x the lobes' uniform parts (``Lobe.uniform``),
+    ``KERNEL_ACCURACY`` x their kernel parts (``Lobe.kernel``; both summed over the
+    map) and ``SKY_STENCIL_ACCURACY`` x the other lobes' together (the stencil's
+    errors of two lobes share its cells). Zeros and (0, P, 3) when the environment
+    lights none. The model minus the sky term is the model without it."""
     zero = np.zeros(np.shape(data.geometry.background))
     if not (material.opaque and data.geometry.sky_lit):
         return zero, zero, np.zeros((0,) + zero.shape)
