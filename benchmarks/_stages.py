@@ -27,7 +27,6 @@ WRAPPED = (
     ("_drivers", "_finish", "other checks after the fit (covariance, sandwich, adequacy)"),
     ("_discretisation", "sample_rows", "discretisation term (_discretisation)"),
     ("_discretisation", "sky_terms", "discretisation term (_discretisation)"),
-    ("_discretisation", "coarse_without_sky", "discretisation term (_discretisation)"),
     ("_discretisation", "finer_values", "discretisation term (_discretisation)"),
     ("_discretisation", "ring_error", "discretisation term (_discretisation)"),
     ("_discretisation", "shift", "discretisation term (_discretisation)"),
