@@ -34,6 +34,7 @@ import functools
 import numpy as np
 
 from ._keep import derived
+from ._math import to_device
 from .envlight import bilinear, dir_to_uv, uv_to_dir
 
 #: The map is summed at its finest pyramid level at most this wide, its columns
@@ -156,12 +157,11 @@ def kernel_sums(levels, kernel, rows, normal, view, weight, n: int) -> np.ndarra
     of which it may read cos_i, cos_o and cos_io only, the rest None) at
     each env sample (``rows`` (R,) its pixel, unit ``normal`` and ``view`` (R, 3)),
     times its weight (R,), summed per pixel; ``levels``: the sky's pyramid."""
-    import jax.numpy as jnp
-
     dirs, radiance = _nodes(levels)
     pad = (-len(rows)) % KERNEL_CHUNK
     # (zero padding: cos_i = 0 there, which the kernel's mask takes to 0, and weight 0)
     args = [np.pad(a, [(0, pad)] + [(0, 0)] * (a.ndim - 1)) for a in (normal, view, weight)]
-    e = np.asarray(_summer(kernel)(*map(jnp.asarray, args), jnp.asarray(dirs),
-                                   jnp.asarray(radiance)))[:len(rows)]
+    # (to_device: jnp.asarray compiled a copy kernel per shape on a first run)
+    e = np.asarray(_summer(kernel)(*map(to_device, args), to_device(dirs),
+                                   to_device(radiance)))[:len(rows)]
     return _per_pixel(rows, e, n)

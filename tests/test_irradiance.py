@@ -235,6 +235,28 @@ def test_the_stated_errors_sky_parts_are_multiplied_on_the_host(tmp_path, probe_
     np.testing.assert_allclose(uniform + kernel, np.asarray(own), rtol=1e-12)
 
 
+def test_kernel_sums_compile_their_sum_alone(probe_sky, caplog):
+    """``irradiance.kernel_sums`` puts its host arrays on the device without a copy
+    kernel per shape (``jnp.asarray`` compiled three on a first Oren-Nayar sky fit):
+    on shapes seen for the first time it compiles its chunked sum only."""
+    import jax
+
+    from fitter.bsdf import oren_nayar
+    from fitter.irradiance import kernel_sums
+
+    n = _normals(37, seed=5)
+    view = _normals(37, seed=6)
+    view = np.where(np.sum(n * view, -1, keepdims=True) < 0, -view, view)
+    jax.clear_caches()  # (shapes other tests may have compiled for: all first seen here)
+    with jax.log_compiles(True), caplog.at_level("DEBUG"):
+        out = kernel_sums(probe_sky.levels, oren_nayar._term, np.arange(37) % 5, n, view,
+                          np.ones(37), 5)
+    compiled = [rec.getMessage().split()[1] for rec in caplog.records
+                if rec.getMessage().startswith("Compiling")]
+    assert compiled == ["jit(run)"], compiled
+    assert out.shape == (5, 3) and np.all(out > 0)
+
+
 def test_an_oren_nayar_fit_under_a_sky_needs_no_stencil(tmp_path, probe_sky, finer_builds):
     """Its stated errors take the sums' accuracy (no half-ring stencil geometry is
     built for a ring error it has not), and the model's own render (noise 1e-3) is
