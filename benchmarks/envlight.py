@@ -8,11 +8,12 @@ Usage: ``.venv/bin/python benchmarks/envlight.py [--spp 4096] [--case env_plasti
    seeds (their difference is the noise floor; cached under
    ``benchmarks/results/tmp/``) and with the model under several
    discretisations of the sky term (``envlight.Detail``: theta_o nodes, lobe
-   points per cell; the stencil's ring density; the sun's sample sets),
+   points per cell; the stencil's ring density; the sun's sample sets; the
+   limb pixels' env samples, ``geometry.LIMB_NODES`` and ``ENV_LIMB_COS``),
    printing over the pixels wholly on the sphere the relative RMSE, the mean
-   relative error, the mean relative error of the limb pixels (cos_o < 0.35
-   at the centre), the per-step render and Jacobian time of that lobe alone
-   and the geometry's memory.
+   relative error, the mean and RMS relative error of the limb pixels (cos_o <
+   0.35 at a sub-sample) with the latter's noise floor, the per-step render and
+   Jacobian time of that lobe alone and the geometry's memory.
 2. Cost of the case's fit with the defaults, each in a fresh process: the first
    fit (tabulation + compilation + solve; no compilation cache) and its CPU
    time (all threads: steadier than wall time on a loaded machine) and the compiled
@@ -71,24 +72,27 @@ def _lobes(mat: Material, truth):
 def _variant(label):
     """Module settings of a discretisation variant (restored afterwards)."""
     saved = (skystencil.Detail.__new__.__defaults__, suncells.SUN_CONE, suncells.SUN_EDGE,
-             geometry.ENV_LIMB_COS)
+             geometry.ENV_LIMB_COS, geometry.LIMB_NODES)
     nodes, sub, rings = skystencil.Detail()
     change = {"default": {}, "nodes 49": {"nodes": 49}, "nodes 65": {"nodes": 65},
               "nodes 193": {"nodes": 193},
               "sub 1x1": {"sub": (1, 1)}, "sub 1x2": {"sub": (1, 2)}, "sub 4x8": {"sub": (4, 8)},
               "coarse rings": {"rings": 2},
               "sun everywhere": {"cone": 4.0}, "limb 0.2": {"limb": 0.2},
-              "limb 0.1": {"limb": 0.1}}[label]
+              "limb 0.1": {"limb": 0.1}, "limb grid": {"limb_nodes": 0},
+              "limb 3 points": {"limb_nodes": 3}, "limb 2 points": {"limb_nodes": 2},
+              "limb 6 points": {"limb_nodes": 6}}[label]
     skystencil.Detail.__new__.__defaults__ = (change.get("nodes", nodes), change.get("sub", sub),
                                               change.get("rings", rings))
     suncells.SUN_CONE = change.get("cone", suncells.SUN_CONE)
     geometry.ENV_LIMB_COS = change.get("limb", geometry.ENV_LIMB_COS)
+    geometry.LIMB_NODES = change.get("limb_nodes", geometry.LIMB_NODES)
     _clear()
     try:
         yield
     finally:
         (skystencil.Detail.__new__.__defaults__, suncells.SUN_CONE, suncells.SUN_EDGE,
-         geometry.ENV_LIMB_COS) = saved
+         geometry.ENV_LIMB_COS, geometry.LIMB_NODES) = saved
         _clear()
 
 
@@ -143,12 +147,13 @@ def accuracy(a):
     mat, truth, _, _ = serialize.material_from_dict(spec["material"], a.case)
     truth = mat.full_params(truth)
     labels = ["default", "nodes 49", "nodes 65", "nodes 193", "sub 1x1", "sub 1x2", "sub 4x8",
-              "coarse rings", "sun everywhere", "limb 0.2", "limb 0.1"]
+              "coarse rings", "sun everywhere", "limb 0.2", "limb 0.1", "limb grid",
+              "limb 2 points", "limb 3 points", "limb 6 points"]
     if a.variants != "all":
         labels = [v for v in labels if v in a.variants.split(",")]
-    print("| lobe | variant | rel RMSE | noise | mean | limb mean | render ms | jac ms "
-          "| prepare s | geometry MiB |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| lobe | variant | rel RMSE | noise | mean | limb mean | limb rel RMSE | its noise "
+          "| render ms | jac ms | prepare s | geometry MiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name, m, p in _lobes(mat, truth):
         ref = _reference(scene, m, p, a.spp, 1, f"{a.case}_{name}")
         ref2 = _reference(scene, m, p, a.spp, 2, f"{a.case}_{name}")
@@ -170,11 +175,15 @@ def accuracy(a):
             full, limb = full.reshape(scene.height, -1), limb.reshape(scene.height, -1)
             d, n = (img - ref)[full], (ref - ref2)[full]
             scale = ref[full].mean()
-            rel_limb = ((img - ref)[limb] / np.maximum(ref[limb], 1e-9)).mean()
+            rel = (img - ref)[limb] / np.maximum(ref[limb], 1e-9)
+            rel_noise = (ref - ref2)[limb] / np.maximum(ref[limb], 1e-9)
+            rel_limb = rel.mean()
             mem = sum(np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(geo))
             print(f"| {name} | {label} | {np.sqrt(np.mean(d**2)) / scale:.4f} | "
                   f"{np.sqrt(np.mean(n**2) / 2) / scale:.4f} | {d.mean() / scale:+.4f} | "
-                  f"{rel_limb:+.4f} | {t_r:.1f} | {t_j:.1f} | {t_prep:.2f} | "
+                  f"{rel_limb:+.4f} | {np.sqrt(np.mean(rel**2)):.4f} | "
+                  f"{np.sqrt(np.mean(rel_noise**2) / 2):.4f} | {t_r:.1f} | {t_j:.1f} | "
+                  f"{t_prep:.2f} | "
                   f"{mem / 2**20:.0f} |", flush=True)
 
 

@@ -65,8 +65,7 @@ def film_samples(scene: Scene, pixels=None):
     # Sample index ky * k + kx, as camera_rays and the weights expect.
     sx = np.broadcast_to((c[..., None, None] + sub[None, :]), (*r.shape[:1], c.shape[1], k, k))
     sy = np.broadcast_to((r[..., None, None] + sub[:, None]), (*r.shape[:1], c.shape[1], k, k))
-    x = 2.0 * sx / w - 1.0
-    y = (1.0 - 2.0 * sy / h) * (h / w)
+    x, y = film_coordinates(scene, sx, sy)
     weight = (wt[:, None] * wt[None, :]).reshape(k * k)
     return x.reshape(*x.shape[:2], k * k), y.reshape(*y.shape[:2], k * k), weight
 
@@ -78,9 +77,24 @@ def camera_rays(scene: Scene, pixels=None):
     each (P, 1, k*k, 3) (a finer model of a few pixels need not trace them all).
     """
     check_scene(scene)
+    x, y, _ = film_samples(scene, pixels)
+    return rays_through(scene, x, y)
+
+
+def film_coordinates(scene: Scene, sx, sy):
+    """Film coordinates (x, y) of points at column ``sx``, row ``sy`` in pixel units
+    (pixel (i, j) covers [j, j+1] x [i, i+1]): x in [-1, 1] left to right, y in
+    [-H/W, H/W] bottom to top."""
+    w, h = scene.width, scene.height
+    return 2.0 * np.asarray(sx) / w - 1.0, (1.0 - 2.0 * np.asarray(sy) / h) * (h / w)
+
+
+def rays_through(scene: Scene, x, y):
+    """Ray origins and unit directions (..., 3), float64, through the film points
+    ``x``, ``y`` (..., as ``film_coordinates`` gives them) of a checked scene."""
     cam = scene.camera
     fwd, right, up = camera_frame(scene)
-    x, y, _ = film_samples(scene, pixels)
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
     origin = np.asarray(cam.origin, dtype=np.float64)
     if cam.type == "perspective":
         t = np.tan(np.radians(cam.fov) / 2.0)

@@ -22,10 +22,11 @@ pyramid level at most that wide, ``light_map``). It is split in two, both tabula
   irradiance; every other lobe's is a quadrature whose error against Mitsuba
   ``benchmarks/envlight.py`` measures per discretisation (``Detail``).
 
-Env samples are the pixel centres of pixels wholly on the sphere and every
-hitting sub-pixel sample of silhouette pixels and of limb pixels
-(``geometry.ENV_LIMB_COS``), weighted by its quadrature weight: the sky term
-is smooth across the sphere but for the limb. The sun lights get every
+Env samples are the pixel centres of pixels wholly on the sphere, k points
+of a Gauss rule across the limb in limb pixels (``geometry.ENV_LIMB_COS``,
+``fitter.limbrule``) and every hitting sub-pixel sample of silhouette pixels,
+weighted by its quadrature weight: the sky term is smooth across the sphere
+but for the limb, where it changes across the limb, not along it. The sun lights get every
 sub-pixel sample near the highlight and their horizon, one merged light at
 the env samples elsewhere (``suncells.sun_samples``).
 """

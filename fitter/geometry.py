@@ -21,9 +21,11 @@ import numpy as np
 from ._keep import derived
 from ._math import to_device
 from .bsdf.base import UNLIT, Cosines, cosines
-from .camera import SceneError, camera_rays, film_samples
+from .camera import (SceneError, camera_rays, film_coordinates, film_samples, pixel_rule,
+                     rays_through)
 from .compilation_cache import FAST_COMPILE
 from .environment import EnvData, lookup
+from .limbrule import across_limb
 from .scene import DirectionalLight, PointLight, Scene
 from .suncells import SunCells, sun_samples
 
@@ -294,19 +296,26 @@ def light_terms(lights, position):
     return np.stack(dirs), np.stack(falloff), np.asarray(color, dtype=np.float64)
 
 
-#: Pixels wholly on the sphere whose centre sees it at cos(theta_o) below this get every
-#: sub-pixel sample as env samples, like silhouette pixels: near the limb the glossy
-#: reflection of the sky rises steeply (Fresnel, the lobe's horizon cut) across one
-#: pixel, and its centre value was 5.7 % below Mitsuba's pixel average over the
-#: outermost 5 % of the radius (Torrance-Sparrow m = 0.1 under the probe, 128^2); with
-#: 4 x 4 sub-samples 2.0 % (2 x 2 midpoints: 3.2 %).
+#: Pixels wholly on the sphere whose centre sees it at cos(theta_o) below this are
+#: sampled across the limb (``LIMB_NODES``): near the limb the glossy reflection of the
+#: sky rises steeply (Fresnel, the lobe's horizon cut) across one pixel, and its centre
+#: value was 5.7 % below Mitsuba's pixel average over the outermost 5 % of the radius
+#: (Torrance-Sparrow m = 0.1 under the probe, 128^2); with 4 x 4 sub-samples 2.0 %
+#: (2 x 2 midpoints: 3.2 %).
 ENV_LIMB_COS = 0.35
+#: A limb pixel's env samples: k points of the Gauss rule across the limb
+#: (``limbrule``; k the scene's sub-pixel samples per axis, whose k x k grid it
+#: replaces resolves k rows across it), or this many; 0: every sub-pixel sample. The
+#: grid's limb held 70 % of env_plastic's env samples; against Mitsuba the rule is as
+#: accurate (benchmarks/README.md, envlight).
+LIMB_NODES: int | None = None
 
 
 def env_samples(scene: Scene, hit, t, o, d, weight, pixel_index):
     """Env samples: (row, normal, view, weight) of pixel centres wholly inside the
-    sphere (away from the limb) and of every hitting sub-pixel sample of silhouette
-    and limb pixels (``ENV_LIMB_COS``)."""
+    sphere (away from the limb), of points across the limb of limb pixels
+    (``ENV_LIMB_COS``, ``LIMB_NODES``; every sub-pixel sample where one of the
+    points misses) and of every hitting sub-pixel sample of silhouette pixels."""
     sph = scene.sphere
     full = hit.all(axis=1)
     oc, dc = camera_rays(scene.replace(supersampling=1, pixel_rule="midpoint"))
@@ -320,16 +329,41 @@ def env_samples(scene: Scene, hit, t, o, d, weight, pixel_index):
     limb = -np.sum(nc * dc, -1) < ENV_LIMB_COS
     centre = np.nonzero(full)[0][~limb]
     many = hit & ~full[:, None]
-    many[np.nonzero(full)[0][limb]] = True
+    across = _across_limb(scene, t, o, d, weight, pixel_index, np.nonzero(full)[0][limb])
+    many[across[4]] = True
     edge_p, edge_k = np.nonzero(many)
-    rows = np.concatenate([centre, edge_p])
-    pos = np.concatenate([pos_c[~limb], o[edge_p, edge_k] + t[edge_p, edge_k, None]
+    rows = np.concatenate([centre, across[0], edge_p])
+    pos = np.concatenate([pos_c[~limb], across[1], o[edge_p, edge_k] + t[edge_p, edge_k, None]
                           * d[edge_p, edge_k]])
-    ray = np.concatenate([dc[~limb], d[edge_p, edge_k]])
+    ray = np.concatenate([dc[~limb], across[2], d[edge_p, edge_k]])
     normal = (pos - np.asarray(sph.center)) / sph.radius
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    wts = np.concatenate([np.ones(centre.size), weight[edge_k]])
+    wts = np.concatenate([np.ones(centre.size), across[3], weight[edge_k]])
     return rows, normal, -ray, wts
+
+
+def _across_limb(scene: Scene, t, o, d, weight, pixel_index, px):
+    """(rows, hit points, ray directions, weights) of the points across the limb
+    (``LIMB_NODES``) of each of the pixels ``px`` (rows of the traced arrays, every
+    sub-sample a hit), and the pixels where a point misses (given every sub-sample)."""
+    sph = scene.sphere
+    m = scene.supersampling if LIMB_NODES is None else LIMB_NODES
+    none = (np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+    if not m or scene.supersampling < 2 or not px.size:  # (one sub-sample: the centre)
+        return none + (px,)
+    pos = o[px] + t[px, :, None] * d[px]
+    cos_o = -np.sum((pos - np.asarray(sph.center)) * d[px], -1) / sph.radius
+    sub = pixel_rule(scene.supersampling, scene.pixel_rule)[0]
+    off, w = across_limb(cos_o, weight, sub, m)  # (P, m, 2), (P, m)
+    row, col = np.divmod(pixel_index[px], scene.width)
+    x, y = film_coordinates(scene, col[:, None] + 0.5 + off[..., 0],
+                            row[:, None] + 0.5 + off[..., 1])
+    o_l, d_l = rays_through(scene, x, y)
+    t_l = intersect_sphere(o_l, d_l, sph.center, sph.radius)
+    ok = np.isfinite(t_l).all(axis=1)
+    p_l = o_l[ok] + t_l[ok][..., None] * d_l[ok]
+    return (np.repeat(px[ok], m), p_l.reshape(-1, 3), d_l[ok].reshape(-1, 3),
+            w[ok].reshape(-1), px[~ok])
 
 
 def _beside(fn):
