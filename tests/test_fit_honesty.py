@@ -343,6 +343,32 @@ def test_an_environment_sun_marks_highlight_pixels(tmp_path):
     assert peak in high or label[peak] == 2
 
 
+def test_regions_of_a_subset_sharing_the_sun_pairs(tmp_path):
+    """A fit's pixel subset shares the sun's pairs (``Geometry.subset(...,
+    shared_sun=True)``): a dropped pixel's samples point past the last row. With
+    highlight pixels dropped, the regions are those of the whole geometry's kept
+    pixels (an env_sweep case had raised IndexError here)."""
+    import jax.numpy as jnp
+
+    from fitter.imageio import write_image
+    from fitter.render import cached_renderer
+
+    img = np.full((16, 32, 3), 0.3)
+    img[6, 12] = [3000.0, 2900.0, 2500.0]
+    path = str(tmp_path / "sun.exr")
+    write_image(path, img)
+    scene = fitter.Scene(width=32, height=32, supersampling=2,
+                         environment=fitter.Environment(type="envmap", file=path))
+    mat = fitter.Material.from_params({"torrance_sparrow.m": 0.1})
+    geo = cached_renderer(scene, mat, jnp.dtype(jnp.float64), None).geometry
+    whole = _adequacy.pixel_regions(geo)
+    high = np.nonzero(whole == 1)[0]
+    keep = np.setdiff1d(np.arange(whole.size), high[::2])
+    sub = geo.subset(keep, shared_sun=True)
+    assert np.asarray(sub.sun.index).max() == keep.size  # a dropped pixel's sample
+    np.testing.assert_array_equal(_adequacy.pixel_regions(sub), whole[keep])
+
+
 def test_sub_pixel_highlight_is_not_a_confident_wrong_eta():
     """Issue 12: m = 1e-3, eta = 1.5 (a sub-pixel highlight), 32^2, noise 0.1 % of
     the mean lit pixel, one start at m = 0.01. The weakest direction's profile

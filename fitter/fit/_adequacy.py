@@ -82,7 +82,8 @@ def _regions(geometry) -> np.ndarray:
     sun = getattr(geometry, "sun", ())
     for index, cos, weight, _ in sun.groups() if sun else ():  # an environment's sun cells
         near = (np.asarray(cos.cos_h) >= np.cos(HIGHLIGHT_ANGLE)) & (np.asarray(weight) > 0)
-        label[np.asarray(index)[near.any(axis=0)]] = 1
+        rows = np.asarray(index)[near.any(axis=0)]
+        label[rows[rows < label.size]] = 1  # (shared pairs: a pixel not fitted is past the end)
     label[grazing | ~hit.all(axis=1)] = 2
     return label
 
