@@ -21,7 +21,7 @@ RULE_ATOL = 1e-10
 LIMB_RTOL = 1.5e-4
 
 
-@pytest.mark.parametrize("m", [2, 3, 4, 6])
+@pytest.mark.parametrize("m", [2, 3, 4, 6, 8])
 @pytest.mark.parametrize("axis", [(1.0, 0.0), (0.0, 1.0)])
 def test_rule_on_a_pixel_axis_is_gauss_legendre(m, axis):
     """Across a pixel's edge the density of the offset is uniform on [-1/2, 1/2]:
