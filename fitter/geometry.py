@@ -329,16 +329,17 @@ def env_samples(scene: Scene, hit, t, o, d, weight, pixel_index):
     limb = -np.sum(nc * dc, -1) < ENV_LIMB_COS
     centre = np.nonzero(full)[0][~limb]
     many = hit & ~full[:, None]
-    across = _across_limb(scene, t, o, d, weight, pixel_index, np.nonzero(full)[0][limb])
-    many[across[4]] = True
+    l_rows, l_pos, l_ray, l_wts, missed = _across_limb(scene, t, o, d, weight, pixel_index,
+                                                       np.nonzero(full)[0][limb])
+    many[missed] = True
     edge_p, edge_k = np.nonzero(many)
-    rows = np.concatenate([centre, across[0], edge_p])
-    pos = np.concatenate([pos_c[~limb], across[1], o[edge_p, edge_k] + t[edge_p, edge_k, None]
+    rows = np.concatenate([centre, l_rows, edge_p])
+    pos = np.concatenate([pos_c[~limb], l_pos, o[edge_p, edge_k] + t[edge_p, edge_k, None]
                           * d[edge_p, edge_k]])
-    ray = np.concatenate([dc[~limb], across[2], d[edge_p, edge_k]])
+    ray = np.concatenate([dc[~limb], l_ray, d[edge_p, edge_k]])
     normal = (pos - np.asarray(sph.center)) / sph.radius
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    wts = np.concatenate([np.ones(centre.size), across[3], weight[edge_k]])
+    wts = np.concatenate([np.ones(centre.size), l_wts, weight[edge_k]])
     return rows, normal, -ray, wts
 
 

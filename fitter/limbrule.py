@@ -13,8 +13,10 @@ rule (Golub & Welsch, "Calculation of Gauss quadrature rules", Math. Comp. 23,
 1969, from the trapezoid's moments) is exact for polynomials in s of degree
 2m - 1; on a pixel axis (u = (1, 0)) it is the m-point Gauss-Legendre rule, the
 resolution across the limb of the m x m product rule at m points instead of m^2.
-The points lie on the line through the pixel's centre along u, and the odd
-terms along the limb vanish by the square's symmetry.
+Each point lies on its chord {u . x = s} of the pixel, at the chord's middle
+moved along u to where cos theta_o takes its mean over the chord (the iso-lines
+are circles about the sphere's centre, not lines across the pixel), so the
+variation along the limb enters to second order too (``across_limb``).
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ def _moments(a, b, n: int) -> np.ndarray:
 
 def trapezoid_rule(a, b, m: int):
     """(nodes (..., m), weights (..., m)) of the m-point Gauss rule for the density
-    of s = a X + b Y, X, Y ~ U(-1/2, 1/2) (a, b >= 0, not both 0; ...): the
+    of s = a X + b Y, X, Y ~ U(-1/2, 1/2) (a, b (...) >= 0, not both 0): the
     Jacobi matrix from the Cholesky factor of the moments' Hankel matrix
     (Golub & Welsch 1969). The weights sum to 1."""
     mu = _moments(a, b, 2 * m)
@@ -66,8 +68,8 @@ def across_limb(cos_o, weight, sub, m: int):
     ``cos_o`` (P, k^2): cos theta_o at the pixel's k x k sub-pixel samples (index
     ky * k + kx, as ``camera.film_samples``), ``weight`` (k^2,) their weights and
     ``sub`` (k,) their offsets within the pixel (``camera.pixel_rule``), to which
-    a quadratic q(x) is fitted (weighted least squares; a plane for k < 3). u is the direction in
-    which q falls at the centre (a pixel where it is flat gets u = (1, 0)). The
+    a quadratic q(x) is fitted (weighted least squares; a plane for k < 3). u is
+    the direction in which q falls at the centre (where it is flat, (1, 0)). The
     point of node s is on the chord {x in the pixel: u . x = s}, at its middle
     moved along u to where q equals q's mean over the chord (the iso-lines of
     cos theta_o are circles about the sphere's centre, not lines across the
@@ -77,7 +79,7 @@ def across_limb(cos_o, weight, sub, m: int):
     sub = np.asarray(sub, np.float64) - 0.5
     x, y = np.tile(sub, k), np.repeat(sub, k)
     terms = [np.ones_like(x), x, y] + ([x * x, x * y, y * y] if k > 2 else [])
-    design = np.stack(terms, -1)  # (k^2, 6); a plane where 2 x 2 samples cannot fit more
+    design = np.stack(terms, -1)  # (k^2, 6), or (k^2, 3): 2 x 2 samples fit a plane only
     wd = design * np.asarray(weight, np.float64)[:, None]
     coef = np.asarray(cos_o, np.float64) @ np.linalg.solve(design.T @ wd, wd.T).T
     coef = np.concatenate([coef, np.zeros((coef.shape[0], 6 - coef.shape[1]))], -1)
