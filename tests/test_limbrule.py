@@ -15,6 +15,8 @@ from fitter.scene import Scene
 #: Nodes and weights against NumPy's Gauss-Legendre (a different algorithm): float64
 #: rounding of the Hankel matrix's Cholesky factor.
 RULE_ATOL = 1e-10
+#: Moments of degree < 10 of a unit pixel's offset (at most 2^-j): float64 rounding.
+MOMENT_ATOL = 1e-12
 #: Against a 64 x 64 midpoint grid over wholly covered limb pixels (64^2 sphere, 4 x 4
 #: Gauss sub-samples): the rule across the limb was 6.8e-5 off at most (the 4 x 4 grid it
 #: replaces 2.7e-5; on the chord's middles, without the iso-lines' curvature, 4.9e-4).
@@ -44,22 +46,21 @@ def test_rule_integrates_polynomials_across_a_turned_pixel(phi, m):
     s = (a * x[:, None] + b * x[None, :]) / 2
     ww = np.outer(w, w) / 4
     for j in range(2 * m):
-        assert np.sum(weights * nodes**j) == pytest.approx(np.sum(ww * s**j), abs=1e-12)
+        assert np.sum(weights * nodes**j) == pytest.approx(np.sum(ww * s**j), abs=MOMENT_ATOL)
     assert np.all(np.abs(nodes) <= (a + b) / 2)  # inside the density's support
 
 
 def test_points_follow_the_fall_of_cos_theta_o():
     """A linear cos theta_o falling to the right puts every point on the row
     through the pixel's centre, at Gauss-Legendre's offsets."""
-    sub, _ = np.polynomial.legendre.leggauss(4)
-    sub = (sub + 1) / 2
-    x = np.tile(sub, 4) - 0.5
+    nodes, w1 = np.polynomial.legendre.leggauss(4)
+    sub = (nodes + 1) / 2  # the 4 x 4 Gauss sub-samples' offsets in the pixel
+    x = np.tile(sub, 4) - 0.5  # (column offsets, index ky * k + kx)
     cos_o = (0.3 - 0.1 * x)[None]
-    weight = np.outer(*(np.polynomial.legendre.leggauss(4)[1] / 2,) * 2).reshape(-1)
+    weight = np.outer(w1 / 2, w1 / 2).reshape(-1)
     off, w = across_limb(cos_o, weight, sub, 4)
-    np.testing.assert_allclose(off[0, :, 1], 0.0, atol=1e-12)
-    np.testing.assert_allclose(off[0, :, 0], np.polynomial.legendre.leggauss(4)[0] / 2,
-                               atol=1e-10)
+    np.testing.assert_allclose(off[0, :, 1], 0.0, atol=RULE_ATOL)
+    np.testing.assert_allclose(off[0, :, 0], nodes / 2, atol=RULE_ATOL)
     assert w.sum() == pytest.approx(1.0)
 
 
