@@ -61,8 +61,8 @@ SE_FLOOR = 0.5
 #: Every this many-th highlight and rim pixel, each standing for this many
 #: (``strata``: there a pixel standing out is strided too). Under a
 #: sky a rim pixel held 16 env samples when these were measured (the limb's 4 x 4;
-#: 4 points across the limb now, ``geometry.LIMB_NODES``) and a highlight pixel
-#: the sun's full sampling, each the cost of ~16 body pixels
+#: k points across the limb now, 4 at 4 x 4, ``geometry.LIMB_NODES``) and a
+#: highlight pixel the sun's full sampling, each the cost of ~16 body pixels
 #: (the rim held 90 % of env_plastic's subset's samples when taken whole);
 #: point-lit, highlight and rim held 80 % of 256^2 plastic's subset.
 #: ``benchmarks/profile_subset.py``, the estimated rises' largest error against
