@@ -318,9 +318,7 @@ def env_samples(scene: Scene, hit, t, o, d, weight, pixel_index):
     points misses) and of every hitting sub-pixel sample of silhouette pixels."""
     sph = scene.sphere
     full = hit.all(axis=1)
-    oc, dc = camera_rays(scene.replace(supersampling=1, pixel_rule="midpoint"))
-    oc = oc.reshape(-1, 3)[pixel_index[full]]
-    dc = dc.reshape(-1, 3)[pixel_index[full]]
+    oc, dc = _rays_from_centres(scene, pixel_index[full], np.zeros(2))
     tc = intersect_sphere(oc, dc, sph.center, sph.radius)
     tc = np.where(np.isfinite(tc), tc, 0.0)  # a centre ray between Gauss nodes: tangent
     pos_c = oc + tc[:, None] * dc
@@ -356,15 +354,21 @@ def _across_limb(scene: Scene, t, o, d, weight, pixel_index, px):
     cos_o = -np.sum((pos - np.asarray(sph.center)) * d[px], -1) / sph.radius
     sub = pixel_rule(scene.supersampling, scene.pixel_rule)[0]
     off, w = across_limb(cos_o, weight, sub, m)  # (P, m, 2), (P, m)
-    row, col = np.divmod(pixel_index[px], scene.width)
-    x, y = film_coordinates(scene, col[:, None] + 0.5 + off[..., 0],
-                            row[:, None] + 0.5 + off[..., 1])
-    o_l, d_l = rays_through(scene, x, y)
+    o_l, d_l = _rays_from_centres(scene, pixel_index[px][:, None], off)
     t_l = intersect_sphere(o_l, d_l, sph.center, sph.radius)
     ok = np.isfinite(t_l).all(axis=1)
     p_l = o_l[ok] + t_l[ok][..., None] * d_l[ok]
     return (np.repeat(px[ok], m), p_l.reshape(-1, 3), d_l[ok].reshape(-1, 3),
             w[ok].reshape(-1), px[~ok])
+
+
+def _rays_from_centres(scene: Scene, flat, offset):
+    """Ray origins and directions (..., 3) through the points ``offset`` (..., 2:
+    column, row, in pixel units) from the centres of the pixels ``flat`` (...,
+    flat indices, broadcast against the offsets' leading axes)."""
+    row, col = np.divmod(np.asarray(flat), scene.width)
+    return rays_through(scene, *film_coordinates(scene, col + 0.5 + offset[..., 0],
+                                                 row + 0.5 + offset[..., 1]))
 
 
 def _beside(fn):
