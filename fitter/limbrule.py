@@ -26,6 +26,11 @@ from math import comb
 import numpy as np
 
 
+#: The move along u to the chord's mean cos theta_o is at most this (pixel units): the
+#: quadratic fitted to the sub-samples holds within the pixel, not beyond it.
+MAX_MOVE = 0.25
+
+
 def _moments(a, b, n: int) -> np.ndarray:
     """E[s^j] (..., n + 1) for j = 0..n of s = a X + b Y, X, Y ~ U(-1/2, 1/2) independent."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
@@ -97,7 +102,7 @@ def across_limb(cos_o, weight, sub, m: int):
     slope = np.einsum("pi,pmi->pm", u, g[:, None] + np.einsum("pij,pmj->pmi", hess, x0))
     rise = q_vv[:, None] * length**2 / 24.0
     step = np.where(slope < 0, rise / np.where(slope < 0, slope, -1.0), 0.0)
-    return x0 + np.clip(step, -0.25, 0.25)[..., None] * u[:, None], w
+    return x0 + np.clip(step, -MAX_MOVE, MAX_MOVE)[..., None] * u[:, None], w
 
 
 def _chords(s, u, v):
