@@ -64,33 +64,28 @@ def test_points_follow_the_fall_of_cos_theta_o():
     assert w.sum() == pytest.approx(1.0)
 
 
-def _env_samples(scene, nodes):
+def _env_samples(scene, nodes, monkeypatch):
     """(rows, normals, views, weights) of ``geometry.env_samples`` with
     ``LIMB_NODES`` = ``nodes``, the traced pixels' flat indices and which of
     them every sub-pixel sample sees on the sphere."""
-    saved = geometry.LIMB_NODES
-    geometry.LIMB_NODES = nodes
-    try:
-        o, d = camera_rays(scene)
-        h, w, k2, _ = d.shape
-        t = geometry.intersect_sphere(o, d, scene.sphere.center, scene.sphere.radius)
-        hit_all = np.isfinite(t).reshape(h * w, k2)
-        idx = np.nonzero(hit_all.any(1))[0]
-        hit = hit_all[idx]
-        wt = film_samples(scene, np.zeros(1, np.int64))[2]
-        out = geometry.env_samples(
-            scene, hit, np.where(hit, t.reshape(h * w, k2)[idx], 0.0),
-            o.reshape(h * w, k2, 3)[idx], d.reshape(h * w, k2, 3)[idx], wt, idx)
-    finally:
-        geometry.LIMB_NODES = saved
+    monkeypatch.setattr(geometry, "LIMB_NODES", nodes)
+    o, d = camera_rays(scene)
+    h, w, k2, _ = d.shape
+    t = geometry.intersect_sphere(o, d, scene.sphere.center, scene.sphere.radius)
+    hit_all = np.isfinite(t).reshape(h * w, k2)
+    idx = np.nonzero(hit_all.any(1))[0]
+    hit = hit_all[idx]
+    wt = film_samples(scene, np.zeros(1, np.int64))[2]
+    out = geometry.env_samples(
+        scene, hit, np.where(hit, t.reshape(h * w, k2)[idx], 0.0),
+        o.reshape(h * w, k2, 3)[idx], d.reshape(h * w, k2, 3)[idx], wt, idx)
     return out, idx, hit.all(1)
 
 
-def _limb_values(scene, f, nodes):
-    """Per traced pixel the env samples' weighted sum of f(normal, view), the
-    pixels' flat indices and which are wholly on the sphere (``_env_samples``)."""
-    (rows, n, v, ww), idx, full = _env_samples(scene, nodes)
-    return np.bincount(rows, ww * f(n, v), minlength=idx.size), idx, full
+def _per_pixel(samples, f, n_pixels):
+    """Each pixel's weighted sum of f(normal, view) over its env samples."""
+    rows, n, v, ww = samples
+    return np.bincount(rows, ww * f(n, v), minlength=n_pixels)
 
 
 def _steep(n, v):
@@ -99,13 +94,14 @@ def _steep(n, v):
     return (1.0 - c) ** 5 + np.sqrt(c)
 
 
-def test_limb_pixels_integrate_a_steep_function_of_the_view_angle():
+def test_limb_pixels_integrate_a_steep_function_of_the_view_angle(monkeypatch):
     """Reference: each pixel's box average by a 64 x 64 midpoint grid (independent
     of the sub-pixel rule), over the limb pixels (centre cos theta_o < 0.35) that
     it sees wholly on the sphere; the rule across the limb (k = 4 points) against it,
     and, as a control, the pixel centre alone is far off."""
     scene = Scene(width=64, height=64, supersampling=4)
-    val, idx, full = _limb_values(scene, _steep, None)
+    samples, idx, full = _env_samples(scene, None, monkeypatch)
+    val = _per_pixel(samples, _steep, idx.size)
     dense = scene.replace(supersampling=64, pixel_rule="midpoint")
     o, d = camera_rays(dense, idx)
     t = geometry.intersect_sphere(o, d, scene.sphere.center, scene.sphere.radius)
@@ -125,16 +121,17 @@ def test_limb_pixels_integrate_a_steep_function_of_the_view_angle():
 
 
 @pytest.mark.parametrize("k, rule", [(1, "gauss"), (2, "gauss"), (3, "midpoint"), (4, "gauss")])
-def test_limb_samples_are_fewer_and_weigh_each_pixel_once(k, rule):
+def test_limb_samples_are_fewer_and_weigh_each_pixel_once(k, rule, monkeypatch):
     """The rule across the limb: k samples per limb pixel instead of k^2 (one, the
     centre, for k = 1), the weights of each pixel wholly on the sphere summing to
     1 either way (a pixel where a point misses keeps its sub-samples)."""
     scene = Scene(width=64, height=64, supersampling=k, pixel_rule=rule)
     counts = {}
     for nodes in (0, None):
-        val, idx, full = _limb_values(scene, lambda n, v: np.ones(len(n)), nodes)
-        np.testing.assert_allclose(val[full], 1.0, rtol=1e-12)
-        counts[nodes] = np.bincount(_env_samples(scene, nodes)[0][0], minlength=idx.size)
+        samples, idx, full = _env_samples(scene, nodes, monkeypatch)
+        weights = _per_pixel(samples, lambda n, v: np.ones(len(n)), idx.size)
+        np.testing.assert_allclose(weights[full], 1.0, rtol=1e-12)
+        counts[nodes] = np.bincount(samples[0], minlength=idx.size)
     fewer = counts[None] != counts[0]
     if k == 1:
         assert not fewer.any()
